@@ -31,6 +31,7 @@ Hard constraints are ``-inf`` rewards; a temperature ``τ`` is a reward scaling
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from dataclasses import dataclass, field
 
@@ -45,6 +46,30 @@ COMPILE_MIN_PAIRS = 5_000_000
 
 
 # ----------------------------------------------------------------------------- kernels
+def _exp_ftz(x: torch.Tensor) -> torch.Tensor:
+    """``exp(x)`` that never produces denormal floats.
+
+    Denormals make x86 arithmetic several times slower, and occupancies of unlikely
+    states reach them constantly (measured: 0.8 s -> 1.7 s per 3-expert forward step).
+    Arguments below a floor are raised to it, so such a term reads ``exp(floor)``
+    (1.8e-35 in float32, 1e-304 in float64) instead of something smaller: far below
+    the dtype's resolution of any sum it enters, and far enough above the denormal
+    range that products with transition probabilities stay normal. ``clamp_min`` reads
+    ``x`` once, which keeps inductor's loop fused (a ``where`` on ``x`` made it
+    materialise all S·A).
+    """
+    log_tiny = -80.0 if x.dtype == torch.float32 else -700.0
+    return torch.exp(x.clamp_min(log_tiny))
+
+
+def _logsumexp(q: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
+    """Stable logsumexp over ``dims``; a slice that is all ``-inf`` gives ``-inf``."""
+    top = q.amax(dims, keepdim=True)
+    finite = torch.isfinite(top)
+    out = torch.log(_exp_ftz(q - torch.where(finite, top, 0.0)).sum(dims)) + top.squeeze(dims)
+    return torch.where(finite.squeeze(dims), out, top.squeeze(dims))
+
+
 def _apply_expert(X: torch.Tensor, i: int, n_experts: int, nxt_t: torch.Tensor, p: float,
                   r_t: torch.Tensor | None) -> torch.Tensor:
     """Apply expert ``i``'s move-or-stay operator along its state axis.
@@ -86,75 +111,90 @@ def _prepare(V_next: torch.Tensor, r_t: torch.Tensor, nxt_t: torch.Tensor, p: fl
     return X
 
 
-def _q_first(X: torch.Tensor, r1_t: torch.Tensor, nxt_t: torch.Tensor, p: float,
-             s1: torch.Tensor, a1: torch.Tensor) -> torch.Tensor:
-    """Q (without the joint term) at expert-1 cells ``s1`` and actions ``a1``, both
-    ``[A1', C]`` index tensors, from ``X = _prepare(..)`` (``[A1]*(N-1) + [S1]*N``):
-    returns ``[A1', C] + [A1]*(N-1) + [S1]*(N-1)``."""
-    k = (X.dim() - 1) // 2  # N-1 action axes come first; expert 1's state axis is k
-    n1 = nxt_t[a1, s1]  # [A1', C]
-    Xm = X.movedim(k, 0)  # [S1, A.., S..]
-    q = p * Xm[n1] + (1.0 - p) * Xm[s1]
-    extra = [1] * (X.dim() - 1)
-    return q + r1_t[a1, s1].reshape(list(s1.shape) + extra)
-
-
-def _backward_kernel(V_next, r_t, nxt_t, p, gamma, s1, a1, hard: bool):
-    """``Vlse_t[s1, ...] = lse (or max) over all actions of Q`` (no joint term), for the
-    expert-1 cells in the ``[A1, C]`` index ``s1``. Returns ``[C] + [S1]*(N-1)``."""
-    X = _prepare(V_next, r_t, nxt_t, p, gamma)
-    q = _q_first(X, r_t[0], nxt_t, p, s1, a1)  # [A1, C, A.., S..]
-    N = V_next.dim()
-    q = q.movedim(1, N)  # [A1, A..(N-1), C, S..]
-    q = q.reshape((-1,) + tuple(q.shape[N:]))
-    return q.amax(0) if hard else torch.logsumexp(q, 0)
-
-
-def _pull(values_at, pred_src: torch.Tensor, pred_w: torch.Tensor) -> torch.Tensor:
-    """Transposed operator along one expert axis, as a gather:
-    ``out[.., s', ..] = Σ_a Σ_k w[a, s', k] * values_at(src[a, s', k])``.
-
-    ``values_at(src)`` with ``src`` ``[A1, S1]`` returns ``[A1, S1, ...]`` (the source
-    values for action ``a`` at cell ``src[a, s']``)."""
-    K = pred_src.shape[-1]
-    total = None
-    for k in range(K):
-        v = values_at(pred_src[..., k])
-        w = pred_w[..., k].reshape(tuple(pred_w.shape[:2]) + (1,) * (v.dim() - 2))
-        term = (w * v).sum(0)
-        total = term if total is None else total + term
-    return total
-
-
-def _forward_kernel(V_next, Vlse, logd, r_t, nxt_t, p, gamma, pred_src, pred_w, eye_src,
-                    a_index):
-    """One forward step.
+def _q_first(X: torch.Tensor, r1_t: torch.Tensor, move_to: torch.Tensor, stay_at, p: float
+             ) -> torch.Tensor:
+    """Q (without the joint term) for every expert-1 action at a set of expert-1 cells.
 
     Args:
-        V_next: ``[S1]*N`` value at t+1. Vlse: ``[S1]*N`` logsumexp part of ``V_t``.
-        logd: ``[S1]*N`` log state distribution at t (``-inf`` where zero).
-        pred_src, pred_w: ``[N?]`` no — ``[A1, S1, K]`` predecessor table of an expert.
-        eye_src: ``[A1, S1]`` identity cells; a_index: ``[A1, S1]`` action index.
+        X: ``_prepare(..)`` output, ``[A1]*(N-1) + [S1]*N``.
+        r1_t: ``[A1, C]`` expert 1's reward at those cells.
+        move_to: ``[A1, C]`` where each action's success leads.
+        stay_at: the cells themselves: a ``slice`` (structured, cheap) or ``[A1, C]``.
+        p: success probability.
 
     Returns:
-        (rho1 ``[A1, S1]`` expert-1 marginal, Z ``[A1]*(N-1) + [S1]*N``: the state-action
-        distribution with expert 1's transition applied, other experts' actions kept).
+        ``[A1, C] + [A1]*(N-1) + [S1]*(N-1)``.
+    """
+    k = (X.dim() - 1) // 2  # N-1 action axes come first; expert 1's state axis is k
+    Xm = X.movedim(k, 0)  # [S1, A.., S..] (a view)
+    stay = Xm[stay_at]
+    if isinstance(stay_at, slice):
+        stay = stay.unsqueeze(0)
+    q = p * Xm[move_to] + (1.0 - p) * stay
+    return q + r1_t.reshape(tuple(r1_t.shape) + (1,) * (X.dim() - 1))
+
+
+def _backward_kernel(V_next, r_t, nxt_t, p, gamma, cells: slice, hard: bool):
+    """Backward step for the expert-1 cells ``cells``.
+
+    Returns:
+        ``(L1, V)``: ``L1`` ``[A1, C] + [S1]*(N-1)`` logsumexp (or max) over the other
+        experts' actions for each expert-1 action, and ``V`` ``[C] + [S1]*(N-1)`` the
+        reduction of ``L1`` over expert 1's action (no joint term).
     """
     X = _prepare(V_next, r_t, nxt_t, p, gamma)
+    q = _q_first(X, r_t[0][:, cells], nxt_t[:, cells], cells, p)  # [A1, C, A.., S..]
     N = V_next.dim()
-    shift = logd - Vlse  # [S1]*N ; log(d) - V, so rho = exp(Q + shift)
+    others = tuple(range(2, N + 1))
+    if hard:
+        L1 = q.amax(others) if others else q
+        return L1, L1.amax(0)
+    L1 = _logsumexp(q, others) if others else q
+    return L1, _logsumexp(L1, (0,))
 
-    def rho_at(src):
-        q = _q_first(X, r_t[0], nxt_t, p, src, a_index)  # [A1, S1, A.., S2..]
-        sh = shift[src]  # [A1, S1, S2..]
-        sh = sh.reshape(tuple(sh.shape[:2]) + (1,) * (N - 1) + tuple(sh.shape[2:]))
-        return torch.exp(q + sh)
 
-    rho_self = rho_at(eye_src)  # [A1, S1, A.., S..]
-    # (sum(dim=()) would reduce *every* axis, hence the guard for one expert)
-    rho1 = rho_self.sum(dim=tuple(range(2, rho_self.dim()))) if rho_self.dim() > 2 else rho_self
-    Z = _pull(rho_at, pred_src, pred_w)  # [S1', A.., S2..]
-    return rho1, Z.movedim(0, N - 1)  # [A.., S1', S2..]
+def _forward_kernel(V_next, shift, r_t, nxt_t, p, gamma, cells: slice, w_self, move_src,
+                    move_nxt, move_r, w_move):
+    """Expert 1's transposed operator applied to ``ρ_t = d_t π_t`` (other experts'
+    actions kept), as a pull: each target cell in ``cells`` gathers its self term
+    (structured) and its move predecessors (one table lookup each).
+
+    Args:
+        V_next: ``[S1]*N``. shift: ``[S1]*N`` = ``log d_t - (V_t - g)``.
+        cells: the target cells (a slice of expert 1's cells).
+        w_self: ``[A1, C]`` P(s|s, a). move_src / move_nxt / move_r / w_move:
+            ``[K, A1, C]`` the k-th move predecessor of each target, where its action
+            leads, its expert-1 reward and its probability (0 for padding).
+
+    Returns:
+        ``Z`` ``[C] + [A1]*(N-1) + [S1]*(N-1)``.
+    """
+    X = _prepare(V_next, r_t, nxt_t, p, gamma)
+    pad = (1,) * (V_next.dim() - 1)
+
+    def rho_sum(q, sh, w):  # Σ_a1 w · exp(Q + log d - V), shift broadcast over actions
+        sh = sh.reshape(tuple(sh.shape[:2]) + pad + tuple(sh.shape[2:]))
+        return (w.reshape(tuple(w.shape) + pad + pad) * _exp_ftz(q + sh)).sum(0)
+
+    q_self = _q_first(X, r_t[0][:, cells], nxt_t[:, cells], cells, p)
+    Z = rho_sum(q_self, shift[cells].unsqueeze(0), w_self)
+    for k in range(move_src.shape[0]):
+        q_mv = _q_first(X, move_r[k], move_nxt[k], move_src[k], p)
+        Z = Z + rho_sum(q_mv, shift[move_src[k]], w_move[k])
+    return Z
+
+
+def _pull_kernel(Y: torch.Tensor, w_self: torch.Tensor, a_index: torch.Tensor,
+                 move_src: torch.Tensor, w_move: torch.Tensor) -> torch.Tensor:
+    """One expert's transposed operator summed over its action (experts 2..N, whose
+    state-action distribution is already an array): ``Y`` ``[A1, S1, ...]`` ->
+    ``[S1', ...]``. Tables as in :func:`_forward_kernel`, over all cells."""
+    pad = (1,) * (Y.dim() - 2)
+    out = (w_self.reshape(tuple(w_self.shape) + pad) * Y).sum(0)
+    for k in range(move_src.shape[0]):
+        out = out + (w_move[k].reshape(tuple(w_move[k].shape) + pad)
+                     * Y[a_index, move_src[k]]).sum(0)
+    return out
 
 
 # ---------------------------------------------------------------------------- solution
@@ -176,6 +216,7 @@ class SoftBellmanSolution:
     solver: FactoredSoftBellman = field(repr=False)
     state_occupancy: torch.Tensor | None = None
     local_occupancy: torch.Tensor | None = None
+    timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def log_partition(self) -> float:
@@ -247,28 +288,38 @@ class FactoredSoftBellman:
         self.nxt_t = model.next_cell.t().contiguous().to(dev)  # [A1, S1]
         self.p = model.p_success
         self.a_index = torch.arange(A1, device=dev).unsqueeze(1).expand(A1, S1).contiguous()
-        self.eye_src = torch.arange(S1, device=dev).unsqueeze(0).expand(A1, S1).contiguous()
-        self.pred_src, self.pred_w = self._predecessors()
+        self.w_self, self.move_src, self.w_move = self._predecessors()
+        self.move_nxt = self.nxt_t[self.a_index.unsqueeze(0), self.move_src]  # [K, A1, S1]
         self._bwd = self._fwd = None
         if self.use_compile:
             self._bwd = torch.compile(_backward_kernel, dynamic=False)
             self._fwd = torch.compile(_forward_kernel, dynamic=False)
+            self._pull_compiled = torch.compile(_pull_kernel, dynamic=False)
 
-    def _predecessors(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``[A1, S1, K]`` cells that reach each cell under each action, and their
-        probabilities (padded with weight 0)."""
+    def _predecessors(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The transposed operator of one expert, for pulls.
+
+        Returns:
+            ``w_self`` ``[A1, S1]`` = P(s|s, a); ``move_src`` ``[K, A1, S1]`` the other
+            cells that reach each target under each action (padded with the target
+            itself) and ``w_move`` ``[K, A1, S1]`` their probabilities (0 for padding).
+        """
         P1 = self.model.expert_transition()  # [S1, A1, S1']
-        nz = P1 > 0
-        K = int(nz.sum(0).max())
         S1, A1 = self.model.n_cells, self.model.n_actions
-        src = torch.zeros(A1, S1, K, dtype=torch.int64)
-        w = torch.zeros(A1, S1, K, dtype=torch.float64)
+        eye = torch.arange(S1)
+        w_self = P1[eye, :, eye].t()  # [A1, S1]
+        off = P1.clone()
+        off[eye, :, eye] = 0.0
+        K = max(1, int((off > 0).sum(0).max()))
+        src = eye.expand(K, A1, S1).clone()
+        w = torch.zeros(K, A1, S1, dtype=torch.float64)
         for a in range(A1):
-            for s2 in range(S1):
-                srcs = torch.nonzero(nz[:, a, s2]).flatten()
-                src[a, s2, :len(srcs)] = srcs
-                w[a, s2, :len(srcs)] = P1[srcs, a, s2]
-        return src.to(self.device), w.to(self.device, self.dtype)
+            for t in range(S1):
+                srcs = torch.nonzero(off[:, a, t]).flatten()
+                src[:len(srcs), a, t] = srcs
+                w[:len(srcs), a, t] = off[srcs, a, t]
+        dev, dt = self.device, self.dtype
+        return w_self.to(dev, dt).contiguous(), src.to(dev), w.to(dev, dt)
 
     # ---------------------------------------------------------------- reward handling
     def _tables(self, reward: FactoredReward, temperature: float):
@@ -278,7 +329,8 @@ class FactoredSoftBellman:
         if tuple(local.shape) != (m.n_experts, m.n_cells, m.n_actions):
             raise ValueError(f"reward.local must be [{m.n_experts}, {m.n_cells}, "
                              f"{m.n_actions}], got {tuple(local.shape)}.")
-        if torch.isnan(local).any() or (reward.joint is not None and torch.isnan(reward.joint).any()):
+        joint = reward.joint
+        if torch.isnan(local).any() or (joint is not None and torch.isnan(joint).any()):
             raise ValueError("The reward contains NaN; check the weights (ω_r, λ, ω_c).")
         r_t = (local * scale).transpose(1, 2).to(self.device, self.dtype).contiguous()
         g = None
@@ -287,18 +339,20 @@ class FactoredSoftBellman:
         return r_t, g
 
     # ------------------------------------------------------------------------ backward
-    def _backward_step(self, V_next, r_t, hard: bool) -> torch.Tensor:
-        S1, A1 = self.model.n_cells, self.model.n_actions
+    def _backward_step(self, V_next, r_t, hard: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(L1 [A1] + [S1]*N, Vlse [S1]*N)`` for one step (see _backward_kernel)."""
+        S1 = self.model.n_cells
         gamma = self.model.gamma
         if self.use_compile:
-            return self._bwd(V_next, r_t, self.nxt_t, self.p, gamma, self.eye_src,
-                             self.a_index, hard)
-        out = torch.empty_like(V_next)
+            # A fresh tensor, not a view into V: views at other offsets would recompile.
+            return self._bwd(V_next.clone(), r_t, self.nxt_t, self.p, gamma, slice(None), hard)
+        L1 = torch.empty((self.model.n_actions,) + tuple(V_next.shape), dtype=V_next.dtype,
+                         device=V_next.device)
+        V = torch.empty_like(V_next)
         for c0 in range(0, S1, self.chunk_cells):
             c = slice(c0, min(S1, c0 + self.chunk_cells))
-            out[c] = _backward_kernel(V_next, r_t, self.nxt_t, self.p, gamma,
-                                      self.eye_src[:, c], self.a_index[:, c], hard)
-        return out
+            L1[:, c], V[c] = _backward_kernel(V_next, r_t, self.nxt_t, self.p, gamma, c, hard)
+        return L1, V
 
     def solve(self, reward: FactoredReward, *, temperature: float = 1.0,
               forward: bool = True) -> SoftBellmanSolution:
@@ -319,7 +373,12 @@ class FactoredSoftBellman:
         hard = temperature == 0.0
         r_t, g = self._tables(reward, temperature)
         T = m.horizon
+        sync = torch.cuda.synchronize if self.device.type == "cuda" else (lambda: None)
+        t0 = time.perf_counter()
         V = torch.zeros((T + 1,) + m.state_shape, dtype=self.dtype, device=self.device)
+        # Expert 1's partial logsumexp, kept for the forward pass's expert-1 marginal.
+        L1 = (torch.empty((T, m.n_actions) + m.state_shape, dtype=self.dtype,
+                          device=self.device) if forward else None)
         steps = range(T - 1, -1, -1)
         if self.progress:
             from tqdm.auto import tqdm
@@ -327,17 +386,24 @@ class FactoredSoftBellman:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             for t in steps:
-                v = self._backward_step(V[t + 1], r_t, hard)
+                l1, v = self._backward_step(V[t + 1], r_t, hard)
                 V[t] = v if g is None else v + g
+                if L1 is not None:
+                    L1[t] = l1
         if not hard and temperature != 1.0:
             V *= temperature
+        sync()
+        t1 = time.perf_counter()
         sol = SoftBellmanSolution(V=V, reward=reward, temperature=float(temperature), solver=self)
+        sol.timings["backward_s"] = t1 - t0
         if forward:
-            self._forward(sol, r_t, g)
+            self._forward(sol, r_t, g, L1)
+            sync()
+            sol.timings["forward_s"] = time.perf_counter() - t1
         return sol
 
     # ------------------------------------------------------------------------- forward
-    def _forward(self, sol: SoftBellmanSolution, r_t, g) -> None:
+    def _forward(self, sol: SoftBellmanSolution, r_t, g, L1: torch.Tensor) -> None:
         m = self.model
         N, T, gamma = m.n_experts, m.horizon, m.gamma
         tau = sol.temperature
@@ -346,6 +412,7 @@ class FactoredSoftBellman:
         occ_state = torch.zeros(m.state_shape, dtype=torch.float64, device=self.device)
         occ_local = torch.zeros(N, m.n_actions, m.n_cells, dtype=torch.float64,
                                 device=self.device)
+        rest = tuple(range(2, N + 1))  # the other experts' state axes of [A1, S1, S..]
         steps = range(T)
         if self.progress:
             from tqdm.auto import tqdm
@@ -354,46 +421,46 @@ class FactoredSoftBellman:
             disc = gamma**t
             occ_state += disc * d
             Vlse = V[t] if g is None else V[t] - g
-            logd = torch.where(d > 0, torch.log(d), torch.full_like(d, -math.inf))
-            # States that cannot be occupied (V = -inf under hard constraints) have d = 0.
-            Vlse = torch.where(torch.isfinite(Vlse), Vlse, torch.zeros_like(Vlse))
-            rho1, Z = self._forward_step(V[t + 1], Vlse, logd, r_t)
-            occ_local[0] += disc * rho1.double()
-            # Remaining experts: their marginal from Z, then their transposed operator.
-            for i in range(1, N):
-                # Z: [A_i, .., A_N, S1, .., SN]; expert i's action is axis 0.
+            # log d - V; -inf where d = 0 (this also covers V = -inf under hard masks).
+            ok = (d > 0) & torch.isfinite(Vlse)
+            shift = torch.where(ok, torch.log(d) - Vlse, torch.full_like(d, -math.inf))
+            # Expert 1's marginal from its partial logsumexp: Σ_s' d(s) π^1(a1|s).
+            rho1 = _exp_ftz(L1[t] + shift.unsqueeze(0))
+            occ_local[0] += disc * (rho1.sum(rest) if rest else rho1).double()
+            # (sum(dim=()) would reduce every axis, hence the guard for one expert)
+            Z = self._forward_step(V[t + 1], shift, r_t).movedim(0, N - 1)  # [A.., S1', S..]
+            for i in range(1, N):  # Z: [A_i, .., A_N, S1, .., SN]
                 k = Z.dim() - N
-                keep = (0, k + i)
-                occ_local[i] += disc * Z.double().sum(
-                    dim=tuple(a for a in range(Z.dim()) if a not in keep))
-                Zi = Z
-                Z = _pull(lambda src, Zi=Zi, k=k, i=i: Zi.movedim(k + i, 1)[
-                    self.a_index, src], self.pred_src, self.pred_w).movedim(0, k + i - 1)
-            d = Z
+                # float32 partial sums, float64 accumulation over time
+                occ_local[i] += disc * Z.sum(
+                    dim=tuple(a for a in range(Z.dim()) if a not in (0, k + i))).double()
+                Z = self._pull(Z.movedim(k + i, 1)).movedim(0, k + i - 1)
+            d = Z.contiguous()  # a permuted view otherwise: odd strides recompile kernels
         sol.state_occupancy = occ_state
         sol.local_occupancy = occ_local.transpose(1, 2).contiguous()  # [N, S1, A1]
 
-    def _forward_step(self, V_next, Vlse, logd, r_t):
+    def _pull(self, Y: torch.Tensor) -> torch.Tensor:
+        """``[A1, S1, ...]`` -> ``[S1', ...]``: see :func:`_pull_kernel`."""
+        f = self._pull_compiled if self.use_compile else _pull_kernel
+        return f(Y.contiguous(), self.w_self, self.a_index, self.move_src, self.w_move)
+
+    def _forward_step(self, V_next, shift, r_t):
+        """``Z`` ``[S1'] + [A1]*(N-1) + [S1]*(N-1)``: ρ_t through expert 1's operator."""
         S1 = self.model.n_cells
+        move_r = r_t[0][self.a_index.unsqueeze(0), self.move_src]  # [K, A1, S1]
         args = (self.nxt_t, self.p, self.model.gamma)
         if self.use_compile:
-            return self._fwd(V_next, Vlse, logd, r_t, *args, self.pred_src, self.pred_w,
-                             self.eye_src, self.a_index)
-        # Eager: chunk over the *target* cell of expert 1 (and its own marginal).
-        rho1 = torch.zeros(self.model.n_actions, S1, dtype=self.dtype, device=self.device)
-        Z = None
+            return self._fwd(V_next.clone(), shift, r_t, *args, slice(None), self.w_self,
+                             self.move_src, self.move_nxt, move_r, self.w_move)
+        # Eager: chunk over the *target* cells of expert 1 (the self term needs no
+        # gather, so its cells are a slice of the full tables).
+        parts = []
         for c0 in range(0, S1, self.chunk_cells):
             c = slice(c0, min(S1, c0 + self.chunk_cells))
-            r1c, Zc = _forward_kernel(V_next, Vlse, logd, r_t, *args, self.pred_src[:, c],
-                                      self.pred_w[:, c], self.eye_src[:, c],
-                                      self.a_index[:, c])
-            # rho1 of this chunk is indexed by the chunk's own cells (eye_src).
-            rho1[:, c] = r1c
-            if Z is None:
-                Z = torch.empty(Zc.shape[:self.model.n_experts - 1] + (S1,) + Zc.shape[
-                    self.model.n_experts:], dtype=Zc.dtype, device=Zc.device)
-            Z.narrow(self.model.n_experts - 1, c.start, c.stop - c.start).copy_(Zc)
-        return rho1, Z
+            parts.append(_forward_kernel(
+                V_next, shift, r_t, *args, c, self.w_self[:, c], self.move_src[:, :, c],
+                self.move_nxt[:, :, c], move_r[:, :, c], self.w_move[:, :, c]))
+        return torch.cat(parts, 0)
 
     # ------------------------------------------------------------------ point queries
     def q_values_at(self, sol: SoftBellmanSolution, t: int, cells: torch.Tensor) -> torch.Tensor:
