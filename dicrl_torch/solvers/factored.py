@@ -43,6 +43,8 @@ from dicrl_torch.features.bases import FactoredReward
 # Below this many state-action pairs the eager path is fast enough and compiling
 # (seconds, once per shape) does not pay off.
 COMPILE_MIN_PAIRS = 5_000_000
+# Above this |V|, float32 values resolve policies worse than ~1e-3 per step: warn.
+FLOAT32_VALUE_LIMIT = 1e4
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -160,7 +162,9 @@ def _forward_kernel(V_next, shift, r_t, nxt_t, p, gamma, cells: slice, w_self, m
     (structured) and its move predecessors (one table lookup each).
 
     Args:
-        V_next: ``[S1]*N``. shift: ``[S1]*N`` = ``log d_t - (V_t - g)``.
+        V_next: ``[S1]*N``. shift: ``[S1]*N`` = ``log d_t - (V_t - g)``, ``-inf`` where
+            ``d_t = 0``. (One merged tensor: keeping ``log d`` apart costs a second
+            gather, +25% time, for accuracy that float32 ``V`` limits anyway.)
         cells: the target cells (a slice of expert 1's cells).
         w_self: ``[A1, C]`` P(s|s, a). move_src / move_nxt / move_r / w_move:
             ``[K, A1, C]`` the k-th move predecessor of each target, where its action
@@ -172,9 +176,11 @@ def _forward_kernel(V_next, shift, r_t, nxt_t, p, gamma, cells: slice, w_self, m
     X = _prepare(V_next, r_t, nxt_t, p, gamma)
     pad = (1,) * (V_next.dim() - 1)
 
-    def rho_sum(q, sh, w):  # Σ_a1 w · exp(Q + log d - V), shift broadcast over actions
-        sh = sh.reshape(tuple(sh.shape[:2]) + pad + tuple(sh.shape[2:]))
-        return (w.reshape(tuple(w.shape) + pad + pad) * _exp_ftz(q + sh)).sum(0)
+    def bcast(x):  # [., C, S2..] -> [., C, 1 (other actions).., S2..]
+        return x.reshape(tuple(x.shape[:2]) + pad + tuple(x.shape[2:]))
+
+    def rho_sum(q, sh, w):  # Σ_a1 w · exp(Q + log d - V)
+        return (w.reshape(tuple(w.shape) + pad + pad) * _exp_ftz(q + bcast(sh))).sum(0)
 
     q_self = _q_first(X, r_t[0][:, cells], nxt_t[:, cells], cells, p)
     Z = rho_sum(q_self, shift[cells].unsqueeze(0), w_self)
@@ -394,6 +400,16 @@ class FactoredSoftBellman:
             V *= temperature
         sync()
         t1 = time.perf_counter()
+        if self.dtype == torch.float32:
+            finite = V[torch.isfinite(V)]
+            v_max = float(finite.abs().max()) if finite.numel() else 0.0
+            if v_max > FLOAT32_VALUE_LIMIT:
+                # float32 resolves V to ~|V| * 6e-8; beyond this, policies (exp(Q - V))
+                # lose per-step accuracy of order 1e-3 or worse and occupancies drift.
+                warnings.warn(
+                    f"|V| reaches {v_max:.3g}: float32 cannot resolve the policy accurately "
+                    f"at this scale; use dtype=torch.float64 (or smaller weights).",
+                    RuntimeWarning, stacklevel=2)
         sol = SoftBellmanSolution(V=V, reward=reward, temperature=float(temperature), solver=self)
         sol.timings["backward_s"] = t1 - t0
         if forward:
@@ -421,14 +437,14 @@ class FactoredSoftBellman:
             disc = gamma**t
             occ_state += disc * d
             Vlse = V[t] if g is None else V[t] - g
-            # log d - V; -inf where d = 0 (this also covers V = -inf under hard masks).
+            # log d - V; -inf where d = 0 or V = -inf (hard masks: d is 0 there too).
             ok = (d > 0) & torch.isfinite(Vlse)
-            shift = torch.where(ok, torch.log(d) - Vlse, torch.full_like(d, -math.inf))
+            shift = torch.where(ok, torch.log(d) - Vlse, -math.inf).contiguous()
             # Expert 1's marginal from its partial logsumexp: Σ_s' d(s) π^1(a1|s).
             rho1 = _exp_ftz(L1[t] + shift.unsqueeze(0))
-            occ_local[0] += disc * (rho1.sum(rest) if rest else rho1).double()
             # (sum(dim=()) would reduce every axis, hence the guard for one expert)
-            Z = self._forward_step(V[t + 1], shift, r_t).movedim(0, N - 1)  # [A.., S1', S..]
+            occ_local[0] += disc * (rho1.sum(rest) if rest else rho1).double()
+            Z = self._forward_step(V[t + 1], shift, r_t).movedim(0, N - 1)  # [A.., S..]
             for i in range(1, N):  # Z: [A_i, .., A_N, S1, .., SN]
                 k = Z.dim() - N
                 # float32 partial sums, float64 accumulation over time

@@ -1,0 +1,123 @@
+"""Expert policies, trajectory sampling and each learner's local estimates (DESIGN §3).
+
+The experts follow the optimal policy of the *true* CMG: the hard-max DP of the
+factored solver with every constrained pair masked (``-inf`` reward), ties broken
+uniformly; an optional temperature makes them soft-optimal. The *nominal* experts
+solve the same game without the mask.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from dicrl_torch.demos.storage import Demonstrations
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+from dicrl_torch.features.bases import FactoredFeatures, FactoredReward, _collision_table
+from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
+
+
+def hard_constraint_reward(model: TabularGridModel, layout: GridLayout) -> FactoredReward:
+    """``-inf`` on every pair that violates ``layout``'s true constraints, 0 elsewhere:
+    obstacle cells and forbidden actions (per expert), and collisions (joint)."""
+    N, S1, A1 = model.n_experts, model.n_cells, model.n_actions
+    local = torch.zeros(N, S1, A1, dtype=torch.float64)
+    local[:, torch.from_numpy(layout.obstacle_mask()), :] = -math.inf
+    local[:, :, torch.from_numpy(layout.forbidden_action_mask())] = -math.inf
+    joint = None
+    if layout.collision_constraint and N > 1:
+        joint = torch.where(_collision_table(model) > 0, -math.inf, 0.0).to(torch.float64)
+    return FactoredReward(local=local, joint=joint)
+
+
+def expert_solution(*, solver: FactoredSoftBellman, reward_features: FactoredFeatures,
+                    reward_weights: torch.Tensor, layout: GridLayout | None = None,
+                    constrained: bool = True, temperature: float = 0.0
+                    ) -> SoftBellmanSolution:
+    """Solve for the experts' policy.
+
+    Args:
+        solver: the factored solver of the game.
+        reward_features: reward basis output; ``reward_weights`` ``[l_r]`` its ``ω_rE``.
+        layout: the true constraints (defaults to the solver model's layout).
+        constrained: mask the true constraints (True CMG) or not (nominal game).
+        temperature: 0 for optimal experts (uniform over ties), > 0 soft-optimal.
+    """
+    reward = reward_features.weighted(reward_weights)
+    if constrained:
+        reward = reward + hard_constraint_reward(solver.model, layout or solver.model.layout)
+    sol = solver.solve(reward, temperature=temperature, forward=False)
+    start_value = float(sol.V[(0,) + solver.model.start_state])
+    if not math.isfinite(start_value):
+        raise ValueError("The experts cannot avoid violating a constraint from the start "
+                         "state in this layout/horizon; change the layout.")
+    return sol
+
+
+def _to_torch_generator(rng: np.random.Generator | torch.Generator | int) -> torch.Generator:
+    if isinstance(rng, torch.Generator):
+        return rng
+    if isinstance(rng, np.random.Generator):
+        return torch.Generator().manual_seed(int(rng.integers(2**62)))
+    if isinstance(rng, int):
+        return torch.Generator().manual_seed(rng)
+    raise TypeError(f"rng must be a np.random.Generator, torch.Generator or int seed; "
+                    f"got {type(rng).__name__}.")
+
+
+def sample_trajectories(solution: SoftBellmanSolution, n: int,
+                        rng: np.random.Generator | torch.Generator | int) -> Demonstrations:
+    """Sample ``n`` trajectories of the solution's policy in the learner's model (the
+    nominal dynamics; an expert that never violates never freezes, so this equals the
+    true CMG for constrained experts).
+
+    Returns:
+        :class:`Demonstrations` with states ``[n, T+1, N]`` and actions ``[n, T, N]``.
+    """
+    if not isinstance(n, int) or n < 1:
+        raise ValueError(f"n must be a positive int, got {n!r}.")
+    g = _to_torch_generator(rng)
+    m = solution.solver.model
+    N, A1, T = m.n_experts, m.n_actions, m.horizon
+    nxt = m.next_cell
+    cells = torch.tensor(m.start_state, dtype=torch.int64).expand(n, N).clone()
+    states = torch.empty(n, T + 1, N, dtype=torch.int64)
+    actions = torch.empty(n, T, N, dtype=torch.int64)
+    states[:, 0] = cells
+    digits = A1 ** torch.arange(N - 1, -1, -1)  # joint action -> per expert (1 first)
+    for t in range(T):
+        pi = solution.policy_at(t, cells).cpu()  # [n, A1^N]
+        joint = torch.multinomial(pi, 1, generator=g).squeeze(1)
+        a = (joint.unsqueeze(1) // digits) % A1
+        move = torch.rand(n, N, generator=g, dtype=torch.float64) < m.p_success
+        cells = torch.where(move, nxt[cells, a], cells)
+        actions[:, t], states[:, t + 1] = a, cells
+    return Demonstrations(states=states.numpy(), actions=actions.numpy(), n_cells=m.n_cells,
+                          n_actions=A1)
+
+
+def discounted_feature_sums(features: FactoredFeatures, demos: Demonstrations,
+                            gamma: float) -> torch.Tensor:
+    """Per-trajectory discounted feature sums ``Σ_t γ^t φ(s_t, a_t)``: ``[m, l]``.
+
+    Averaged over a learner's trajectories this is ``μ̂_r^[v]`` for reward features,
+    and for cost features the per-feature accrual whose dot product with ``ω_c`` is
+    the local cost estimate ``b̂_ωc^[v]``."""
+    cells = torch.from_numpy(demos.states[:, :-1])  # [m, T, N]
+    acts = torch.from_numpy(demos.actions)
+    n_cells = features.local.shape[1]
+    if features.local.shape[0] != demos.n_experts or n_cells != demos.n_cells:
+        raise ValueError(
+            f"Demonstrations of {demos.n_experts} experts on {demos.n_cells} cells do not "
+            f"match features for {features.local.shape[0]} experts on {n_cells} cells.")
+    phi = features.at(cells, acts, n_cells)  # [m, T, l]
+    disc = gamma ** torch.arange(demos.horizon, dtype=torch.float64)
+    return torch.einsum("mtl,t->ml", phi, disc)
+
+
+def local_estimates(features: FactoredFeatures, demos: Demonstrations,
+                    gamma: float) -> torch.Tensor:
+    """``[l]`` mean discounted feature sum over ``demos`` (a learner's private shard)."""
+    return discounted_feature_sums(features, demos, gamma).mean(0)

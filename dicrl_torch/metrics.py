@@ -1,0 +1,166 @@
+"""Metrics of the paper (DESIGN §6) as pure functions, and batched evaluation
+rollouts in the true CMG.
+
+- CR: total true reward of all experts in an episode (mean ± std over episodes), in
+  the *true* CMG where a violator stops and earns nothing more.
+- FPR = |learned \\ true| / |learned| (0 when nothing is learned).
+- FNR = |true \\ learned| / |true|.
+- CVR: mean over episodes of the fraction of experts that violate a true constraint.
+- RFD = ‖ω_r − ω_rE‖ / ‖ω_rE‖.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+
+
+def _as_bool(mask, name: str) -> np.ndarray:
+    m = np.asarray(mask.cpu() if isinstance(mask, torch.Tensor) else mask)
+    if m.dtype != bool:
+        raise TypeError(f"{name} must be a boolean mask, got dtype {m.dtype}.")
+    return m
+
+
+def false_positive_rate(learned, true) -> float:
+    """|learned \\ true| / |learned|; 0 when nothing is learned."""
+    learned, true = _as_bool(learned, "learned"), _as_bool(true, "true")
+    if learned.shape != true.shape:
+        raise ValueError(f"learned {learned.shape} and true {true.shape} masks differ in shape.")
+    n = learned.sum()
+    return float((learned & ~true).sum() / n) if n else 0.0
+
+
+def false_negative_rate(learned, true) -> float:
+    """|true \\ learned| / |true|; 0 when there is no true constraint."""
+    learned, true = _as_bool(learned, "learned"), _as_bool(true, "true")
+    if learned.shape != true.shape:
+        raise ValueError(f"learned {learned.shape} and true {true.shape} masks differ in shape.")
+    n = true.sum()
+    return float((true & ~learned).sum() / n) if n else 0.0
+
+
+def learned_constraints(cost_weights, threshold: float = 0.5) -> np.ndarray:
+    """``ω_c,j >= threshold`` marks feature ``j`` as a learned constraint."""
+    if not 0.0 < threshold <= 1.0:
+        raise ValueError(f"threshold must lie in (0, 1], got {threshold}.")
+    w = np.asarray(cost_weights.cpu() if isinstance(cost_weights, torch.Tensor) else cost_weights)
+    return w >= threshold
+
+
+def reward_function_distance(weights, true_weights) -> float:
+    """RFD = ‖ω_r − ω_rE‖ / ‖ω_rE‖."""
+    w = np.asarray(weights, dtype=np.float64)
+    w_e = np.asarray(true_weights, dtype=np.float64)
+    if w.shape != w_e.shape:
+        raise ValueError(f"weights {w.shape} and true weights {w_e.shape} differ in shape.")
+    norm = np.linalg.norm(w_e)
+    if norm == 0:
+        raise ValueError("RFD is undefined for all-zero true weights.")
+    return float(np.linalg.norm(w - w_e) / norm)
+
+
+# A policy maps (t, cells [B, N] int64) to joint-action probabilities [B, A1**N].
+Policy = Callable[[int, torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class RolloutResult:
+    """Batched episodes in the true CMG.
+
+    Attributes:
+        returns: ``[B]`` total true reward of all experts.
+        violated: ``[B, N]`` bool, expert violated a true constraint in the episode.
+        cells: ``[B, T+1, N]`` visited cells (a frozen expert keeps its last cell).
+        actions: ``[B, T, N]`` chosen actions.
+    """
+
+    returns: np.ndarray
+    violated: np.ndarray
+    cells: np.ndarray
+    actions: np.ndarray
+
+    @property
+    def cr_mean(self) -> float:
+        return float(self.returns.mean())
+
+    @property
+    def cr_std(self) -> float:
+        return float(self.returns.std())
+
+    @property
+    def cvr(self) -> float:
+        return float(self.violated.mean(1).mean())
+
+
+def true_cmg_step(layout: GridLayout, cells: torch.Tensor, actions: torch.Tensor,
+                  moved: torch.Tensor, active: torch.Tensor, next_cell: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """One step of the true CMG for a batch (the semantics of ``GridWorldCMG``).
+
+    A forbidden action is a violation and the expert does not move; otherwise it moves
+    when ``moved``. Landing on an obstacle, or in the cell of another active expert,
+    is a violation. Frozen (inactive) experts neither move nor collide.
+
+    Args:
+        cells, actions, moved, active: ``[B, N]``.
+        next_cell: ``[S1, A1]`` successful-move targets.
+
+    Returns:
+        new cells ``[B, N]`` and this step's violations ``[B, N]`` (active experts only).
+    """
+    forbidden = torch.from_numpy(layout.forbidden_action_mask())[actions] & active
+    go = moved & active & ~forbidden
+    new = torch.where(go, next_cell[cells, actions], cells)
+    violation = forbidden | (torch.from_numpy(layout.obstacle_mask())[new] & active)
+    if layout.collision_constraint and cells.shape[1] > 1:
+        same = (new.unsqueeze(2) == new.unsqueeze(1)) & active.unsqueeze(1) & active.unsqueeze(2)
+        same &= ~torch.eye(cells.shape[1], dtype=torch.bool)
+        violation |= same.any(2)
+    return new, violation
+
+
+def rollout_true_cmg(*, policy: Policy, model: TabularGridModel, layout: GridLayout,
+                     reward_table: torch.Tensor, n_episodes: int,
+                     rng: torch.Generator, constrained: bool = True) -> RolloutResult:
+    """Roll a joint policy out in the true CMG (violators stop) or, with
+    ``constrained=False``, in the nominal game (nobody stops; violations still count).
+
+    Args:
+        policy: ``(t, cells [B, N]) -> [B, A1**N]`` probabilities.
+        model: the tabular model (dynamics, horizon, start).
+        layout: the true constraints.
+        reward_table: ``[N, S1]`` true reward of each expert in each cell.
+        n_episodes: number of episodes ``B``.
+        rng: a ``torch.Generator``.
+    """
+    if n_episodes < 1:
+        raise ValueError(f"n_episodes must be >= 1, got {n_episodes}.")
+    N, A1, T = model.n_experts, model.n_actions, model.horizon
+    B = n_episodes
+    cells = torch.tensor(model.start_state, dtype=torch.int64).expand(B, N).clone()
+    active = torch.ones(B, N, dtype=torch.bool)
+    violated = torch.zeros(B, N, dtype=torch.bool)
+    returns = torch.zeros(B, dtype=torch.float64)
+    all_cells = torch.empty(B, T + 1, N, dtype=torch.int64)
+    all_actions = torch.empty(B, T, N, dtype=torch.int64)
+    all_cells[:, 0] = cells
+    digits = A1 ** torch.arange(N - 1, -1, -1)
+    expert_idx = torch.arange(N)
+    for t in range(T):
+        returns += (reward_table[expert_idx, cells].double() * active).sum(1)
+        joint = torch.multinomial(policy(t, cells).double().cpu(), 1, generator=rng).squeeze(1)
+        actions = (joint.unsqueeze(1) // digits) % A1
+        moved = torch.rand(B, N, generator=rng, dtype=torch.float64) < model.p_success
+        cells, violation = true_cmg_step(layout, cells, actions, moved, active, model.next_cell)
+        violated |= violation
+        if constrained:
+            active &= ~violation
+        all_cells[:, t + 1], all_actions[:, t] = cells, actions
+    return RolloutResult(returns=returns.numpy(), violated=violated.numpy(),
+                         cells=all_cells.numpy(), actions=all_actions.numpy())
