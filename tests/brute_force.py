@@ -29,7 +29,7 @@ def joint_transition(size: int, n_experts: int, p: float) -> torch.Tensor:
     for s_idx, cells in enumerate(itertools.product(range(S1), repeat=n_experts)):
         for a_idx, acts in enumerate(itertools.product(range(A1), repeat=n_experts)):
             row = s_idx * A1**n_experts + a_idx
-            for combo in itertools.product(*[per[c][a] for c, a in zip(cells, acts)]):
+            for combo in itertools.product(*[per[c][a] for c, a in zip(cells, acts, strict=True)]):
                 target = 0
                 prob = 1.0
                 for cell, pr in combo:
