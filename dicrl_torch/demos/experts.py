@@ -105,8 +105,8 @@ def discounted_feature_sums(features: FactoredFeatures, demos: Demonstrations,
     Averaged over a learner's trajectories this is ``μ̂_r^[v]`` for reward features,
     and for cost features the per-feature accrual whose dot product with ``ω_c`` is
     the local cost estimate ``b̂_ωc^[v]``."""
-    cells = torch.from_numpy(demos.states[:, :-1])  # [m, T, N]
-    acts = torch.from_numpy(demos.actions)
+    cells = torch.tensor(demos.states[:, :-1])  # [m, T, N] (copies: demos are read-only)
+    acts = torch.tensor(demos.actions)
     n_cells = features.local.shape[1]
     if features.local.shape[0] != demos.n_experts or n_cells != demos.n_cells:
         raise ValueError(

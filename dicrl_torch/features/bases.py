@@ -311,7 +311,7 @@ class FrozenModuleBasis(FeatureBasis):
         module: the network, e.g. a randomly initialised or pretrained MLP.
         out_dim: number of features the module returns.
         per_expert: one block per expert instead of shared features.
-        max_value: bound on each feature.
+        max_value: bound on each module output (shared features: ``N`` times that).
     """
 
     def __init__(self, model: TabularGridModel, module: nn.Module, out_dim: int,
@@ -320,7 +320,9 @@ class FrozenModuleBasis(FeatureBasis):
         if out_dim < 1:
             raise ValueError(f"out_dim must be >= 1, got {out_dim}.")
         self.net = module.requires_grad_(False).eval()
-        self.out_dim, self.per_expert, self.max_value = out_dim, per_expert, max_value
+        self.out_dim, self.per_expert = out_dim, per_expert
+        # Shared features are summed over the experts standing in their cells.
+        self.max_value = max_value if per_expert else max_value * model.n_experts
         blocks = model.n_experts if per_expert else 1
         self.names = [f"expert{i}/f{j}" if per_expert else f"f{j}"
                       for i in range(blocks) for j in range(out_dim)]

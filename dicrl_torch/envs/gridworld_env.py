@@ -1,0 +1,347 @@
+"""The multi-expert grid-world constrained Markov game as a PettingZoo ``ParallelEnv``
+(DESIGN §3).
+
+Geometry, actions and true constraints come from :mod:`dicrl_torch.envs.grid`; this
+module only adds the stochastic simulation, the ground-truth reward and rendering.
+
+Ground-truth reward of expert ``i`` at cell ``s``::
+
+    r_i(s) = w_i[0] * (1 - cheb(s, g_i) / (size - 1)) + w_i[1] * [s == g_i]
+
+with default weights ``w_i = (1.0, 2.0)``: it grows as the goal gets closer and is
+largest at the goal, so reaching the goal early and staying there earns the most.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import numpy as np
+from gymnasium import logger, spaces
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+from pettingzoo import ParallelEnv
+
+from dicrl_torch.envs.grid import ACTION_NAMES, N_ACTIONS, GridLayout
+
+DEFAULT_REWARD_WEIGHTS: tuple[float, float] = (1.0, 2.0)
+
+# Fixed per-expert colours (tab10 blue, orange, green) so plots of one expert match
+# across figures.
+EXPERT_COLOURS: tuple[str, ...] = ("#1f77b4", "#ff7f0e", "#2ca02c")
+
+
+class GridWorldCMG(ParallelEnv):
+    """Multi-expert grid world; the true CMG or its nominal (unconstrained) game.
+
+    Every agent observes the joint cells of all experts (cell index ``y * size + x``)
+    and picks one of the 9 actions of :data:`dicrl_torch.envs.grid.ACTIONS`. Each
+    expert's action succeeds with probability ``p_success`` and otherwise it stays;
+    experts move simultaneously. Expert ``i`` is paid the reward of its *pre-step*
+    cell (the learner's ``r(s_t, a_t)``, ``t = 0..T-1``).
+
+    True constraints: a forbidden action (the expert then does not move in the
+    constrained game), arriving on an obstacle, and — if
+    ``layout.collision_constraint`` — arriving in the same cell as another active
+    expert (both violate). ``infos[agent]["violation"]`` reports these in both games.
+    With ``constrained=True`` a violator keeps that step's reward, is terminated and
+    removed from ``agents`` and from the board (no later collision with it). With
+    ``constrained=False`` nobody is stopped. All remaining agents are truncated after
+    ``horizon`` steps.
+
+    Args:
+        layout: grid geometry, starts, goals and true constraints.
+        horizon: number of steps ``T`` before truncation.
+        p_success: probability that an action succeeds, in ``(0, 1]``.
+        constrained: True for the true CMG, False for the nominal game.
+        reward_weights: ``[N, 2]`` or ``[2]`` (shared) weights of the reward features
+            ``(closeness, at_goal)``; default ``(1.0, 2.0)`` for every expert.
+        render_mode: None or ``"rgb_array"``.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "name": "gridworld_cmg_v0",
+                "is_parallelizable": True}
+
+    def __init__(
+        self,
+        *,
+        layout: GridLayout,
+        horizon: int = 40,
+        p_success: float = 0.8,
+        constrained: bool = True,
+        reward_weights: Sequence[float] | Sequence[Sequence[float]] | np.ndarray | None = None,
+        render_mode: str | None = None,
+    ) -> None:
+        if not isinstance(layout, GridLayout):
+            raise ValueError(
+                f"layout must be a GridLayout, got {type(layout).__name__}; build one with "
+                f"GridLayout(...) or GridLayout.scobee(n_experts)."
+            )
+        # bool is an int subclass: reject it so horizon=True is not read as 1.
+        if not isinstance(horizon, int | np.integer) or isinstance(horizon, bool) or horizon < 1:
+            raise ValueError(f"horizon must be a positive int, got {horizon!r}.")
+        if not isinstance(p_success, int | float | np.floating) or not 0.0 < p_success <= 1.0:
+            raise ValueError(f"p_success must be a probability in (0, 1], got {p_success!r}.")
+        if not isinstance(constrained, bool | np.bool_):
+            raise ValueError(
+                f"constrained must be a bool (True: true CMG, False: nominal game), "
+                f"got {constrained!r}."
+            )
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode must be None or one of {self.metadata['render_modes']}, "
+                f"got {render_mode!r}."
+            )
+        self.layout = layout
+        self.horizon = int(horizon)
+        self.p_success = float(p_success)
+        self.constrained = bool(constrained)
+        self.render_mode = render_mode
+        n = layout.n_experts
+        self.reward_weights = _check_reward_weights(reward_weights, n)  # [N, 2]
+
+        self.possible_agents = [f"expert_{i}" for i in range(n)]
+        self._index = {agent: i for i, agent in enumerate(self.possible_agents)}
+        self._next_cell = layout.next_cell_table()  # [S1, A1]
+        self._obstacle = layout.obstacle_mask()  # [S1]
+        self._forbidden = layout.forbidden_action_mask()  # [A1]
+        # [N, S1] ground-truth reward of each expert at each cell.
+        self.reward_table = np.einsum("nsk,nk->ns", self.reward_features(), self.reward_weights)
+        self.state_space = spaces.MultiDiscrete([layout.n_cells] * n, dtype=np.int64)
+
+        self.agents: list[str] = []
+        self.violated: dict[str, bool] = {}
+        self.timestep = 0
+        self._cells: np.ndarray | None = None
+        self._rng: np.random.Generator | None = None
+
+    # ---- spaces -------------------------------------------------------------------
+    # PettingZoo requires the same space object on every call (so seeding it sticks)
+    # and recommends lru_cache (functools.cache is lru_cache(maxsize=None)); the few
+    # small envs the cache keeps alive do not matter.
+    @functools.cache  # noqa: B019
+    def observation_space(self, agent: str) -> spaces.MultiDiscrete:
+        self._agent_index(agent)
+        return spaces.MultiDiscrete([self.layout.n_cells] * self.layout.n_experts,
+                                    dtype=np.int64)
+
+    @functools.cache  # noqa: B019
+    def action_space(self, agent: str) -> spaces.Discrete:
+        self._agent_index(agent)
+        return spaces.Discrete(N_ACTIONS)
+
+    # ---- ground truth -------------------------------------------------------------
+    def reward_features(self) -> np.ndarray:
+        """``[N, S1, 2]`` float64 reward features ``(closeness, at_goal)`` per expert."""
+        lay = self.layout
+        closeness = 1.0 - lay.chebyshev_to_goal() / (lay.size - 1)
+        at_goal = np.zeros((lay.n_experts, lay.n_cells))
+        at_goal[np.arange(lay.n_experts), list(lay.goal_cells)] = 1.0
+        return np.stack([closeness, at_goal], axis=-1)
+
+    # ---- episode ------------------------------------------------------------------
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
+        # Like gymnasium: reseed only when asked, so successive episodes differ.
+        if seed is not None or self._rng is None:
+            self._rng = np.random.default_rng(seed)
+        self.agents = list(self.possible_agents)
+        self.violated = dict.fromkeys(self.possible_agents, False)
+        self.timestep = 0
+        self._cells = np.array(self.layout.start_cells, dtype=np.int64)
+        obs = {a: self._cells.copy() for a in self.agents}
+        infos = {a: {"violation": False, "cell": int(self._cells[self._index[a]])}
+                 for a in self.agents}
+        return obs, infos
+
+    def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
+        """Advance one step. ``actions`` must hold an action for every agent in
+        ``agents``; actions of agents that are already done are ignored."""
+        if self._cells is None:
+            raise RuntimeError("step() called before reset(); call env.reset(seed=...) first.")
+        if not self.agents:  # PettingZoo convention: stepping a finished episode is a no-op
+            return {}, {}, {}, {}, {}
+        live = list(self.agents)
+        acts = self._check_actions(actions, live)
+        pairs = [(a, self._index[a]) for a in live]
+
+        # One draw per expert, in expert order, also for finished experts: the random
+        # stream then depends on the seed only, so the true and nominal games and any
+        # set of live experts see the same success draws.
+        success = self._rng.random(self.layout.n_experts) < self.p_success
+        old = self._cells
+        new = old.copy()
+        violation = {}
+        for agent, i in pairs:
+            a = acts[agent]
+            forbidden = bool(self._forbidden[a])
+            # In the true CMG a forbidden action is refused: the expert does not move.
+            blocked = forbidden and self.constrained
+            if success[i] and not blocked:
+                new[i] = self._next_cell[old[i], a]
+            violation[agent] = forbidden or bool(self._obstacle[new[i]])
+        if self.layout.collision_constraint:
+            # Only live experts are on the board: frozen bodies were removed.
+            for agent, i in pairs:
+                if any(k != i and new[k] == new[i] for _, k in pairs):
+                    violation[agent] = True
+
+        rewards = {a: float(self.reward_table[i, old[i]]) for a, i in pairs}
+        self._cells = new
+        self.timestep += 1
+        terminations = {a: self.constrained and violation[a] for a in live}
+        truncations = dict.fromkeys(live, self.timestep >= self.horizon)
+        for a in live:
+            self.violated[a] = self.violated[a] or violation[a]
+        obs = {a: new.copy() for a in live}
+        infos = {a: {"violation": violation[a], "cell": int(new[i])} for a, i in pairs}
+        self.agents = [a for a in live if not (terminations[a] or truncations[a])]
+        return obs, rewards, terminations, truncations, infos
+
+    def state(self) -> np.ndarray:
+        """The joint cells ``[N]`` int64 (frozen experts at the cell where they stopped)."""
+        if self._cells is None:
+            raise RuntimeError("state() called before reset(); call env.reset() first.")
+        return self._cells.copy()
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            logger.warn("render() called with render_mode=None; pass render_mode='rgb_array'.")
+            return None
+        lines = [f"{self.metadata['name']}  t={self.timestep}/{self.horizon}"
+                 + ("" if self.constrained else "  (nominal)")]
+        if self.layout.forbidden_actions:
+            lines.append("forbidden actions: " + ", ".join(self.layout.forbidden_actions))
+        stopped = [a for a, v in self.violated.items() if v]
+        if stopped:
+            lines.append("violated: " + ", ".join(stopped))
+        cells = None if self._cells is None else self._cells.tolist()
+        return render_grid(self.layout, cells=cells, title="\n".join(lines))
+
+    def close(self) -> None:
+        pass
+
+    # ---- helpers ------------------------------------------------------------------
+    def _agent_index(self, agent: str) -> int:
+        try:
+            return self._index[agent]
+        except KeyError:
+            raise ValueError(
+                f"Unknown agent {agent!r}; this env's agents are {self.possible_agents}."
+            ) from None
+
+    def _check_actions(self, actions: dict[str, int], live: list[str]) -> dict[str, int]:
+        missing = [a for a in live if a not in actions]
+        if missing:
+            raise ValueError(f"No action given for active agent(s) {missing}; give one each.")
+        out = {}
+        for agent, a in actions.items():
+            self._agent_index(agent)
+            if agent not in live:
+                continue
+            arr = np.asarray(a)
+            if arr.ndim != 0 or not np.issubdtype(arr.dtype, np.integer):
+                raise ValueError(f"Action of {agent} must be an int in [0, {N_ACTIONS}), "
+                                 f"got {a!r}.")
+            a = int(a)
+            if not 0 <= a < N_ACTIONS:
+                raise ValueError(
+                    f"Action {a} of {agent} is out of range; use 0..{N_ACTIONS - 1} "
+                    f"({', '.join(ACTION_NAMES)})."
+                )
+            out[agent] = a
+        return out
+
+
+def _check_reward_weights(weights: Any, n: int) -> np.ndarray:
+    w = np.asarray(DEFAULT_REWARD_WEIGHTS if weights is None else weights, dtype=np.float64)
+    if w.shape == (2,):
+        w = np.tile(w, (n, 1))
+    if w.shape != (n, 2):
+        raise ValueError(
+            f"reward_weights must have shape [2] (shared) or [{n}, 2] (one row per expert: "
+            f"closeness, at_goal), got shape {list(w.shape)}."
+        )
+    if not np.all(np.isfinite(w)):
+        raise ValueError(f"reward_weights must be finite, got {w.tolist()}.")
+    return w
+
+
+def render_grid(
+    layout: GridLayout,
+    *,
+    cells: Sequence[int | None] | np.ndarray | None = None,
+    heat: np.ndarray | None = None,
+    constraint_cells: Iterable[int] | None = None,
+    title: str = "",
+) -> np.ndarray:
+    """Draw the grid world and return it as an ``H x W x 3`` uint8 image.
+
+    Obstacles are dark, each expert's start is a circle and its goal a star in the
+    expert's colour. Uses a private Agg canvas, never pyplot's global state, so it is
+    safe in headless and threaded code.
+
+    Args:
+        layout: the grid to draw.
+        cells: current cell of each expert, drawn as filled numbered markers; an entry
+            may be None to skip that expert.
+        heat: ``[S1]`` values (e.g. a visitation frequency) shown as a colour map.
+        constraint_cells: cell indices drawn as red crosses (e.g. learned constraints).
+        title: figure title, may span several lines.
+
+    Returns:
+        The RGB image.
+    """
+    G, S1 = layout.size, layout.n_cells
+    fig = Figure(figsize=(4.2 if heat is not None else 3.6, 4.0), dpi=80)
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    if heat is not None:
+        heat = np.asarray(heat, dtype=np.float64)
+        if heat.shape != (S1,):
+            raise ValueError(
+                f"heat must have one value per cell, shape [{S1}], got {list(heat.shape)}."
+            )
+        im = ax.imshow(heat.reshape(G, G), cmap="viridis", origin="upper",
+                       extent=(-0.5, G - 0.5, G - 0.5, -0.5), interpolation="nearest")
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
+    for x, y in layout.obstacles:
+        ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, color="0.2", zorder=2))
+    for i, ((sx, sy), (gx, gy)) in enumerate(zip(layout.starts, layout.goals, strict=True)):
+        c = EXPERT_COLOURS[i % len(EXPERT_COLOURS)]
+        ax.plot(sx, sy, "o", ms=14, mfc="none", mec=c, mew=2, zorder=3)
+        ax.plot(gx, gy, "*", ms=15, color=c, zorder=3)
+    if constraint_cells is not None:
+        cc = [int(c) for c in constraint_cells]
+        bad = [c for c in cc if not 0 <= c < S1]
+        if bad:
+            raise ValueError(f"constraint_cells {bad} lie outside 0..{S1 - 1}.")
+        if cc:
+            ax.plot([c % G for c in cc], [c // G for c in cc], "x", ms=11, mew=2.5,
+                    color="red", zorder=4)
+    if cells is not None:
+        for i, c in enumerate(cells):
+            if c is None:
+                continue
+            x, y = layout.xy(int(c))
+            ax.plot(x, y, "o", ms=10, color=EXPERT_COLOURS[i % len(EXPERT_COLOURS)], mec="k",
+                    zorder=5)
+            ax.text(x, y, str(i), ha="center", va="center", fontsize=7, color="w", zorder=6)
+    ax.set_xlim(-0.5, G - 0.5)
+    ax.set_ylim(G - 0.5, -0.5)  # row 0 at the top, as in DESIGN §3
+    ax.set_xticks(np.arange(G))
+    ax.set_yticks(np.arange(G))
+    ax.set_xticks(np.arange(G + 1) - 0.5, minor=True)
+    ax.set_yticks(np.arange(G + 1) - 0.5, minor=True)
+    ax.grid(which="minor", color="0.6", lw=0.6)
+    ax.tick_params(which="both", length=0, labelsize=7)
+    ax.set_aspect("equal")
+    if title:
+        ax.set_title(title, fontsize=8)
+    fig.tight_layout()
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()

@@ -1,0 +1,106 @@
+"""Feature bases: shapes, semantics, ground truth, validation, and the generic
+frozen-module basis."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from dicrl_torch.envs.grid import ACTION_NAMES, GridLayout, TabularGridModel
+from dicrl_torch.features.bases import (
+    FrozenModuleBasis,
+    GoalClosenessRewardBasis,
+    LinearHead,
+    PerExpertIndicatorCostBasis,
+    SharedIndicatorCostBasis,
+    random_mlp,
+)
+
+
+@pytest.fixture(params=[1, 2, 3])
+def model(request):
+    return TabularGridModel(layout=GridLayout.scobee(request.param), horizon=5)
+
+
+def test_no_trainable_parameters(model):
+    for basis in (GoalClosenessRewardBasis(model), SharedIndicatorCostBasis(model),
+                  PerExpertIndicatorCostBasis(model),
+                  FrozenModuleBasis(model, random_mlp(out_dim=4), out_dim=4)):
+        basis()
+        assert not any(p.requires_grad for p in basis.parameters())
+
+
+def test_cost_basis_dimensions_and_ground_truth(model):
+    N = model.n_experts
+    shared, per = SharedIndicatorCostBasis(model), PerExpertIndicatorCostBasis(model)
+    assert shared.dim == 81 + 9 + 1
+    assert per.dim == N * 90 + 1
+    # 11 obstacles + NE, NW + collision (only with two or more experts).
+    assert int(shared.true_constraints().sum()) == 11 + 2 + (N > 1)
+    assert int(per.true_constraints().sum()) == N * 13 + (N > 1)
+    names = [n for n, c in zip(shared.names, shared.true_constraints(), strict=True) if c]
+    assert "cell(4,5)" in names and "action NE" in names and "action NW" in names
+    assert torch.equal(shared.true_weights(), shared.true_constraints().double())
+
+
+def test_indicator_semantics_on_joint_pairs():
+    model = TabularGridModel(layout=GridLayout.scobee(2), horizon=5)
+    f = SharedIndicatorCostBasis(model)()
+    cells = torch.tensor([[40, 40], [0, 80]])  # collision at (4,4); apart
+    acts = torch.tensor([[ACTION_NAMES.index("NE"), 0], [1, 1]])
+    phi = f.at(cells, acts, model.n_cells)
+    assert phi[0, 40] == 2.0  # both experts stand in cell 40
+    assert phi[0, 81 + ACTION_NAMES.index("NE")] == 1.0 and phi[0, 81] == 1.0
+    assert phi[0, -1] == 1.0 and phi[1, -1] == 0.0  # collision indicator
+    assert phi[1, 81 + 1] == 2.0  # both take N
+    per = PerExpertIndicatorCostBasis(model)()
+    phi_p = per.at(cells, acts, model.n_cells)
+    assert phi_p[0, 40] == 1.0 and phi_p[0, 90 + 40] == 1.0
+
+
+def test_goal_closeness_reward(model):
+    rb = GoalClosenessRewardBasis(model)
+    f = rb()
+    layout = model.layout
+    for i, goal in enumerate(layout.goal_cells):
+        assert f.local[i, goal, 0, 2 * i] == 1.0 and f.local[i, goal, 0, 2 * i + 1] == 1.0
+        start = layout.start_cells[i]
+        assert f.local[i, start, 3, 2 * i] == pytest.approx(0.0)  # 8 cells away
+        assert f.local[i, :, :, : 2 * i].abs().sum() == 0  # only its own block
+    r = f.weighted(rb.true_weights())
+    goal = layout.goal_cells[0]
+    assert r.local[0, goal].max() == pytest.approx(3.0)  # largest at the goal
+    assert r.local[0].max() == r.local[0, goal].max()
+
+
+def test_linear_head_and_dense_agree():
+    model = TabularGridModel(layout=GridLayout.open_grid(3, 2), horizon=3)
+    f = SharedIndicatorCostBasis(model)()
+    w = torch.rand(f.dim, dtype=torch.float64)
+    head = LinearHead(f.dim, init=w)
+    assert torch.allclose(head(f).dense(), torch.einsum("sal,l->sa", f.dense(), w))
+    with pytest.raises(ValueError, match="shape"):
+        LinearHead(3, init=torch.zeros(4))
+
+
+def test_frozen_module_basis_swaps_in(model):
+    basis = FrozenModuleBasis(model, random_mlp(out_dim=5, seed=3), out_dim=5, per_expert=True)
+    f = basis()
+    assert f.local.shape == (model.n_experts, 81, 9, 5 * model.n_experts)
+    assert 0.0 <= float(f.local.min()) and float(f.local.max()) <= 1.0
+    assert torch.equal(FrozenModuleBasis(model, random_mlp(out_dim=5, seed=3), out_dim=5,
+                                         per_expert=True)().local, f.local)
+
+
+def test_basis_range_and_width_are_checked():
+    model = TabularGridModel(layout=GridLayout.scobee(1), horizon=3)
+    unbounded = nn.Sequential(nn.Linear(11, 3))  # outputs leave [0, 1]
+    with torch.no_grad():
+        unbounded[0].bias.fill_(5.0)
+    with pytest.raises(ValueError, match="leave"):
+        FrozenModuleBasis(model, unbounded, out_dim=3)()
+    with pytest.raises(ValueError, match="out_dim"):
+        FrozenModuleBasis(model, random_mlp(out_dim=4), out_dim=6)()
+    with pytest.raises(ValueError, match="shape"):
+        SharedIndicatorCostBasis(model)().weighted(torch.zeros(3))
