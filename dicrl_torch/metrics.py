@@ -99,13 +99,14 @@ class RolloutResult:
 
 
 def true_cmg_step(layout: GridLayout, cells: torch.Tensor, actions: torch.Tensor,
-                  moved: torch.Tensor, active: torch.Tensor, next_cell: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """One step of the true CMG for a batch (the semantics of ``GridWorldCMG``).
+                  moved: torch.Tensor, active: torch.Tensor, next_cell: torch.Tensor,
+                  constrained: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """One step for a batch, with the semantics of ``GridWorldCMG`` (tested against it).
 
-    A forbidden action is a violation and the expert does not move; otherwise it moves
-    when ``moved``. Landing on an obstacle, or in the cell of another active expert,
-    is a violation. Frozen (inactive) experts neither move nor collide.
+    A forbidden action is a violation; in the true CMG (``constrained``) the expert then
+    does not move. Otherwise it moves when ``moved``. Landing on an obstacle, or in the
+    cell of another active expert, is a violation. Inactive (frozen) experts neither
+    move nor collide.
 
     Args:
         cells, actions, moved, active: ``[B, N]``.
@@ -115,7 +116,7 @@ def true_cmg_step(layout: GridLayout, cells: torch.Tensor, actions: torch.Tensor
         new cells ``[B, N]`` and this step's violations ``[B, N]`` (active experts only).
     """
     forbidden = torch.from_numpy(layout.forbidden_action_mask())[actions] & active
-    go = moved & active & ~forbidden
+    go = moved & active & ~(forbidden & constrained)
     new = torch.where(go, next_cell[cells, actions], cells)
     violation = forbidden | (torch.from_numpy(layout.obstacle_mask())[new] & active)
     if layout.collision_constraint and cells.shape[1] > 1:
@@ -157,7 +158,8 @@ def rollout_true_cmg(*, policy: Policy, model: TabularGridModel, layout: GridLay
         joint = torch.multinomial(policy(t, cells).double().cpu(), 1, generator=rng).squeeze(1)
         actions = (joint.unsqueeze(1) // digits) % A1
         moved = torch.rand(B, N, generator=rng, dtype=torch.float64) < model.p_success
-        cells, violation = true_cmg_step(layout, cells, actions, moved, active, model.next_cell)
+        cells, violation = true_cmg_step(layout, cells, actions, moved, active, model.next_cell,
+                                         constrained)
         violated |= violation
         if constrained:
             active &= ~violation

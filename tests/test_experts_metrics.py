@@ -157,3 +157,39 @@ def test_bench_cli_prints_one_json_line():
     bad = subprocess.run([sys.executable, "-m", "dicrl_torch.bench", "solver", "--experts", "4"],
                          capture_output=True, text=True)
     assert bad.returncode != 0 and "invalid choice" in bad.stderr
+
+
+@pytest.mark.parametrize("constrained", [True, False])
+@pytest.mark.parametrize("n", [2, 3])
+def test_batched_step_agrees_with_the_pettingzoo_env(n, constrained):
+    from dicrl_torch.envs.gridworld_env import GridWorldCMG
+
+    layout = GridLayout.scobee(n)
+    env = GridWorldCMG(layout=layout, horizon=30, p_success=1.0, constrained=constrained)
+    rb = GoalClosenessRewardBasis(TabularGridModel(layout=layout, horizon=30))
+    table = rb().weighted(rb.true_weights()).local[:, :, 0].numpy()
+    nxt = torch.from_numpy(layout.next_cell_table())
+    rng = np.random.default_rng(n)
+    for episode in range(20):
+        env.reset(seed=episode)
+        cells = torch.tensor(layout.start_cells).unsqueeze(0)
+        active = torch.ones(1, n, dtype=torch.bool)
+        for _ in range(30):
+            acts = rng.integers(0, 9, size=n)
+            live = list(env.agents)
+            _, rewards, _, _, infos = env.step({a: int(acts[env.possible_agents.index(a)])
+                                               for a in live})
+            for a in live:
+                i = env.possible_agents.index(a)
+                assert rewards[a] == pytest.approx(table[i, cells[0, i]])
+            cells, viol = true_cmg_step(layout, cells, torch.from_numpy(acts).unsqueeze(0),
+                                        torch.ones(1, n, dtype=torch.bool), active, nxt,
+                                        constrained)
+            for a in live:
+                i = env.possible_agents.index(a)
+                assert infos[a]["cell"] == int(cells[0, i])
+                assert infos[a]["violation"] == bool(viol[0, i])
+            if constrained:
+                active &= ~viol
+            if not env.agents:
+                break
