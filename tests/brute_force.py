@@ -45,16 +45,22 @@ def joint_transition(size: int, n_experts: int, p: float) -> torch.Tensor:
 
 
 def dense_solve(P: torch.Tensor, r: torch.Tensor, p0: torch.Tensor, T: int, gamma: float,
-                temperature: float = 1.0):
+                temperature: float = 1.0, terminal: torch.Tensor | None = None):
     """Dense finite-horizon (soft) Bellman + occupancy.
 
     Returns V ``[T+1, S]``, policies ``[T, S, A]``, discounted occupancy ``[S, A]``,
     discounted state occupancy ``[S]``."""
     S, A = r.shape
     V = torch.zeros(T + 1, S, dtype=torch.float64)
+    if terminal is not None:
+        V[T] = terminal.reshape(S)
     pis = torch.zeros(T, S, A, dtype=torch.float64)
     for t in range(T - 1, -1, -1):
-        EV = torch.sparse.mm(P, V[t + 1].unsqueeze(1)).reshape(S, A)
+        # (sparse mm would turn 0 * -inf into nan: mask the -inf targets explicitly)
+        vn = V[t + 1]
+        EV = torch.sparse.mm(P, torch.where(torch.isfinite(vn), vn, 0.0).unsqueeze(1))
+        reach_bad = torch.sparse.mm(P, (~torch.isfinite(vn)).double().unsqueeze(1)) > 0
+        EV = torch.where(reach_bad, -torch.inf, EV).reshape(S, A)
         Q = r + gamma * EV
         if temperature == 0:
             V[t] = Q.max(1).values

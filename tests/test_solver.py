@@ -12,7 +12,7 @@ from brute_force import dense_solve, joint_transition, marginals
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dicrl_torch.demos.experts import hard_constraint_reward
+from dicrl_torch.demos.experts import forbidden_state_value, hard_constraint_reward
 from dicrl_torch.envs.grid import DENSE_ENTRY_LIMIT, GridLayout, TabularGridModel
 from dicrl_torch.features.bases import (
     GoalClosenessRewardBasis,
@@ -106,11 +106,13 @@ def test_hard_max_dp_with_masks_matches_brute_force():
     model = TabularGridModel(layout=layout, horizon=4, gamma=0.9)
     rb = GoalClosenessRewardBasis(model)
     reward = rb().weighted(rb.true_weights()) + hard_constraint_reward(model, layout)
+    terminal = forbidden_state_value(model, layout)
     sol = FactoredSoftBellman(model=model, dtype=torch.float64).solve(
-        reward, temperature=0.0, forward=False)
+        reward, temperature=0.0, forward=False, terminal_value=terminal)
     P = brute_P(3, 2)
     V, pis, _, _ = dense_solve(P, reward.dense(), model.initial_distribution().reshape(-1),
-                               4, 0.9, temperature=0.0)
+                               4, 0.9, temperature=0.0, terminal=terminal)
+    assert torch.isinf(V[4]).any()  # the terminal mask is in play
     finite = torch.isfinite(V)
     assert torch.equal(torch.isfinite(sol.V.reshape(5, -1)), finite)
     assert (sol.V.reshape(5, -1)[finite] - V[finite]).abs().max() < TOL

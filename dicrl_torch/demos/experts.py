@@ -32,6 +32,21 @@ def hard_constraint_reward(model: TabularGridModel, layout: GridLayout) -> Facto
     return FactoredReward(local=local, joint=joint)
 
 
+def forbidden_state_value(model: TabularGridModel, layout: GridLayout) -> torch.Tensor:
+    """``[S1]*N`` terminal value: ``-inf`` where an expert stands on an obstacle or
+    two experts share a cell, 0 elsewhere (see ``FactoredSoftBellman.solve``)."""
+    N, S1 = model.n_experts, model.n_cells
+    bad = torch.zeros(model.state_shape, dtype=torch.bool)
+    obstacle = torch.from_numpy(layout.obstacle_mask())
+    for i in range(N):
+        shape = [1] * N
+        shape[i] = S1
+        bad |= obstacle.reshape(shape)
+    if layout.collision_constraint and N > 1:
+        bad |= (_collision_table(model) > 0).reshape(model.state_shape)
+    return torch.where(bad, -math.inf, 0.0).to(torch.float64)
+
+
 def expert_solution(*, solver: FactoredSoftBellman, reward_features: FactoredFeatures,
                     reward_weights: torch.Tensor, layout: GridLayout | None = None,
                     constrained: bool = True, temperature: float = 0.0
@@ -46,9 +61,13 @@ def expert_solution(*, solver: FactoredSoftBellman, reward_features: FactoredFea
         temperature: 0 for optimal experts (uniform over ties), > 0 soft-optimal.
     """
     reward = reward_features.weighted(reward_weights)
+    terminal = None
     if constrained:
-        reward = reward + hard_constraint_reward(solver.model, layout or solver.model.layout)
-    sol = solver.solve(reward, temperature=temperature, forward=False)
+        layout = layout or solver.model.layout
+        reward = reward + hard_constraint_reward(solver.model, layout)
+        terminal = forbidden_state_value(solver.model, layout)
+    sol = solver.solve(reward, temperature=temperature, forward=False,
+                       terminal_value=terminal)
     start_value = float(sol.V[(0,) + solver.model.start_state])
     if not math.isfinite(start_value):
         raise ValueError("The experts cannot avoid violating a constraint from the start "

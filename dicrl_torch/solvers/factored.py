@@ -267,7 +267,8 @@ class FactoredSoftBellman:
     Args:
         model: the learner's tabular model.
         device: ``"cpu"``, ``"cuda"`` or a ``torch.device``.
-        dtype: value dtype (float32 is the fast default; float64 for checks).
+        dtype: value dtype, ``torch.float32`` (fast default) or ``torch.float64``
+            (checks, extreme weights); the names ``"float32"``/``"float64"`` work too.
         compile: ``True``/``False``/``"auto"`` — fuse the ``S·A`` stages with
             ``torch.compile``; ``"auto"`` compiles above 5M pairs.
         chunk_cells: expert-1 cells per chunk on the eager path (bounds memory).
@@ -275,8 +276,10 @@ class FactoredSoftBellman:
     """
 
     def __init__(self, *, model: TabularGridModel, device: str | torch.device = "cpu",
-                 dtype: torch.dtype = torch.float32, compile: bool | str = "auto",
+                 dtype: torch.dtype | str = torch.float32, compile: bool | str = "auto",
                  chunk_cells: int = 9, progress: bool = False) -> None:
+        if isinstance(dtype, str):
+            dtype = {"float32": torch.float32, "float64": torch.float64}.get(dtype, dtype)
         if compile not in (True, False, "auto"):
             raise ValueError(f"compile must be True, False or 'auto', got {compile!r}.")
         if dtype not in (torch.float32, torch.float64):
@@ -361,7 +364,8 @@ class FactoredSoftBellman:
         return L1, V
 
     def solve(self, reward: FactoredReward, *, temperature: float = 1.0,
-              forward: bool = True) -> SoftBellmanSolution:
+              forward: bool = True, terminal_value: torch.Tensor | None = None
+              ) -> SoftBellmanSolution:
         """Backward (and optionally forward) pass for ``reward``.
 
         Args:
@@ -369,6 +373,9 @@ class FactoredSoftBellman:
                 pairs (hard constraints).
             temperature: ``τ > 0`` soft-optimal; ``0`` hard-max DP (no forward pass).
             forward: also compute occupancies (needs ``τ > 0``).
+            terminal_value: ``V_T`` ``[S1]*N`` (default 0). Nothing is scored at the
+                last state ``s_T``, so hard constraints on states must also be put
+                here (``-inf``), or the last move may enter a forbidden state.
         """
         if not (temperature >= 0.0 and math.isfinite(temperature)):
             raise ValueError(f"temperature must be a finite number >= 0, got {temperature!r}.")
@@ -382,6 +389,14 @@ class FactoredSoftBellman:
         sync = torch.cuda.synchronize if self.device.type == "cuda" else (lambda: None)
         t0 = time.perf_counter()
         V = torch.zeros((T + 1,) + m.state_shape, dtype=self.dtype, device=self.device)
+        if terminal_value is not None:
+            if tuple(terminal_value.shape) != m.state_shape:
+                raise ValueError(f"terminal_value must have shape {m.state_shape}, got "
+                                 f"{tuple(terminal_value.shape)}.")
+            if torch.isnan(terminal_value).any():
+                raise ValueError("terminal_value contains NaN.")
+            scale = 1.0 if temperature == 0.0 else 1.0 / temperature
+            V[T] = terminal_value.to(self.device, self.dtype) * scale
         # Expert 1's partial logsumexp, kept for the forward pass's expert-1 marginal.
         L1 = (torch.empty((T, m.n_actions) + m.state_shape, dtype=self.dtype,
                           device=self.device) if forward else None)
