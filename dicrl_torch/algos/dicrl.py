@@ -1,0 +1,297 @@
+"""D-ICRL: the distributed bi-level learner (paper Algorithms 1–2, DESIGN §5).
+
+Every learner ``v`` holds ``ω_c^[v] ∈ [0, 1]^d``, a gradient tracker and, for each
+learner ``u``'s inner process, its own copy ``η^[v](ω_c^[u]) = [ω_r, λ]``. State is
+stacked along a leading axis of the learners local to this process (all of them in
+the simulated backend, one per process under torch.distributed); the communicator
+mixes it. C-ICRL is this trainer with one learner holding all demonstrations.
+
+Inner process (Algorithm 2) for a cost vector ω_c, over k = 0..K-2::
+
+    η^[v](k+1) = Σ_v' W(k)[v,v'] η^[v'](k) − α(k) m^[v] ∇G^[v](η^[v](k); ω_c)
+    η̄^[v] = Σ_k α(k) η^[v](k) / Σ_k α(k),        α(k) = ᾱ / (k + 1)
+
+Outer step (Algorithm 1) for learner v::
+
+    g^[v](n)  = LGA at (ω_c^[v](n), η̄^[v])                   (dicrl_torch.algos.icrl)
+    y^[v](n)  = Σ_v' W̄[v,v'] y^[v'](n−1) + g^[v](n) − g^[v](n−1)     (y(0) = g(0))
+    ω̃^[v]    = Proj_[0,1](ω_c^[v] + N_L y^[v] / ρ)              (LSCA; the paper: ρ = 1)
+    ω_c^[v](n+1) = Σ_v' W̄[v,v'] (ω_c^[v'] + β(n)(ω̃^[v'] − ω_c^[v']))
+
+Departures from the paper, each optional and documented in the config: the LSCA
+curvature ρ (the printed step ``ω_c + N_L y`` moves by the raw likelihood gradient,
+whose scale grows with m and |λ|); warm starts of η across outer iterations; and
+``prune_accrued``: with budget b = 0 a feature that a learner's own demonstrations
+accrue cannot be a constraint, so that learner projects it to 0.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import torch
+
+from dicrl_torch.algos.icrl import (
+    LocalStatistics,
+    dual_gradient,
+    local_gradient,
+    model_reward,
+)
+from dicrl_torch.comm.graphs import MixingSchedule, check_inner_schedule, check_outer_schedule
+from dicrl_torch.demos.storage import Demonstrations
+from dicrl_torch.features.bases import FeatureBasis
+from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
+
+Schedule = MixingSchedule
+
+
+@dataclass(frozen=True)
+class StepSizes:
+    """``α(k) = alpha_bar / (k + 1)`` (inner) and ``β(n) = beta_bar / (n + 1)^beta_power``
+    (outer; ``Σβ = ∞`` and ``Σβ² < ∞`` need ``beta_power ∈ (1/2, 1]``)."""
+
+    alpha_bar: float = 0.05
+    beta_bar: float = 0.5
+    beta_power: float = 0.6
+
+    def __post_init__(self) -> None:
+        if not (self.alpha_bar > 0 and math.isfinite(self.alpha_bar)):
+            raise ValueError(f"alpha_bar must be a positive number, got {self.alpha_bar}.")
+        if not 0 < self.beta_bar < 1:
+            raise ValueError(f"beta_bar must lie in (0, 1) so that β(n) ∈ (0, 1) "
+                             f"(Theorem 1), got {self.beta_bar}.")
+        if not 0.5 < self.beta_power <= 1:
+            raise ValueError(f"beta_power must lie in (0.5, 1] so that Σβ = ∞ and Σβ² < ∞ "
+                             f"(Theorem 1), got {self.beta_power}.")
+
+    def alpha(self, k: int) -> float:
+        return self.alpha_bar / (k + 1)
+
+    def beta(self, n: int) -> float:
+        return self.beta_bar / (n + 1) ** self.beta_power
+
+
+@dataclass
+class LearnerState:
+    """Everything a learner carries between outer iterations (for checkpoints).
+
+    Attributes (leading axis: local learners):
+        cost_weights: ``[n, d]`` ω_c.
+        eta: ``[N_L, n, p]`` warm-start η for each inner process u (p = l_r + 1).
+        eta_bar: ``[n, p]`` the averaged η̄ of each learner's own inner process.
+        tracker, last_lga: ``[n, d]`` y(n−1) and g(n−1).
+        groups: inner processes known to coincide (see ``_inner_groups``).
+    """
+
+    cost_weights: torch.Tensor
+    eta: torch.Tensor
+    eta_bar: torch.Tensor
+    tracker: torch.Tensor | None = None
+    last_lga: torch.Tensor | None = None
+    outer_iteration: int = 0
+    groups: list[list[int]] = field(default_factory=list)
+
+
+class DICRL:
+    """The D-ICRL trainer.
+
+    Args:
+        solver: the factored soft-Bellman solver of the learners' model.
+        reward_basis, cost_basis: feature bases (``φ_r`` and ``φ_c``).
+        shards: demonstrations of the local learners, in ``communicator.local_ids`` order.
+        trajectory_counts: ``m^[v]`` of *every* learner (public: it scales the steps).
+        communicator: mixes η, ω_c and trackers between learners.
+        inner_schedule, outer_schedule: ``k -> W(k)`` and ``n -> W̄(n)`` ``[N_L, N_L]``.
+        steps: step-size schedules.
+        inner_steps: K, inner iterations per outer iteration (>= 2).
+        lsca_curvature: ρ of the LSCA surrogate (1 in the paper).
+        prune_accrued: zero features the learner's own demonstrations accrue.
+        merge_identical_inner: compute bit-identical inner processes once (the results
+            are the same either way; tested).
+        init_cost_weights: ``[N_L, d]`` or a scalar; init_reward_weights ``[l_r]`` or
+            scalar; init_multiplier λ(0).
+    """
+
+    def __init__(self, *, solver: FactoredSoftBellman, reward_basis: FeatureBasis,
+                 cost_basis: FeatureBasis, shards: Sequence[Demonstrations],
+                 trajectory_counts: Sequence[int], communicator, inner_schedule: Schedule,
+                 outer_schedule: Schedule, steps: StepSizes = StepSizes(),
+                 inner_steps: int = 10, lsca_curvature: float = 1.0,
+                 prune_accrued: bool = False,
+                 init_cost_weights: float | torch.Tensor = 0.5,
+                 init_reward_weights: float | torch.Tensor = 0.0,
+                 init_multiplier: float = -1.0, progress: bool = False,
+                 merge_identical_inner: bool = True) -> None:
+        self.comm = communicator
+        N_L = communicator.n_learners
+        local = communicator.local_ids
+        if len(shards) != len(local):
+            raise ValueError(f"{len(shards)} demonstration shards for {len(local)} local "
+                             f"learners {local}; give one shard per local learner.")
+        if len(trajectory_counts) != N_L:
+            raise ValueError(f"trajectory_counts lists {len(trajectory_counts)} learners, "
+                             f"the communicator has {N_L}.")
+        for v, shard in zip(local, shards, strict=True):
+            if shard.n_trajectories != trajectory_counts[v]:
+                raise ValueError(f"Learner {v} holds {shard.n_trajectories} trajectories but "
+                                 f"trajectory_counts says {trajectory_counts[v]}; the shard "
+                                 f"partition and the counts must agree.")
+        # Assumptions 1-3 are checked before any computation.
+        check_inner_schedule(inner_schedule, horizon=max(100, inner_steps))
+        check_outer_schedule(outer_schedule)
+        if inner_steps < 2:
+            raise ValueError(f"inner_steps (K) must be >= 2, got {inner_steps}.")
+        if not lsca_curvature > 0:
+            raise ValueError(f"lsca_curvature must be > 0, got {lsca_curvature}.")
+        self.solver, self.model = solver, solver.model
+        self.reward_basis, self.cost_basis = reward_basis, cost_basis
+        self.fr, self.fc = reward_basis(), cost_basis()
+        self.stats = [LocalStatistics.from_demonstrations(s, self.fr, self.fc, self.model.gamma)
+                      for s in shards]
+        self.m = torch.tensor([float(trajectory_counts[v]) for v in local], dtype=torch.float64)
+        self.inner_schedule, self.outer_schedule = inner_schedule, outer_schedule
+        self.steps, self.K = steps, inner_steps
+        self.rho, self.prune_accrued = float(lsca_curvature), prune_accrued
+        self.progress, self.merge = progress, merge_identical_inner
+        self.n_learners, self.local = N_L, local
+        d, lr = self.fc.dim, self.fr.dim
+        self.accrued = torch.stack([s.cost_accrual > 0 for s in self.stats])  # [n, d]
+
+        cw = torch.as_tensor(init_cost_weights, dtype=torch.float64)
+        cw = cw.expand(N_L, d).clone() if cw.dim() == 0 else cw.clone()
+        if cw.shape != (N_L, d) or (cw < 0).any() or (cw > 1).any():
+            raise ValueError(f"init_cost_weights must be a scalar or [{N_L}, {d}] in [0, 1].")
+        rw = torch.as_tensor(init_reward_weights, dtype=torch.float64).expand(lr).clone()
+        eta0 = torch.cat([rw, torch.tensor([float(init_multiplier)], dtype=torch.float64)])
+        n = len(local)
+        self.state = LearnerState(
+            cost_weights=cw[local].clone(),
+            eta=eta0.expand(N_L, n, lr + 1).clone(),
+            eta_bar=eta0.expand(n, lr + 1).clone(),
+        )
+        self._cost_all = cw  # ω_c of every learner, as last gathered
+        self.history: list[dict] = []
+        self.solves = 0
+
+    # ------------------------------------------------------------------ model pieces
+    def solve(self, eta: torch.Tensor, cost_weights: torch.Tensor) -> SoftBellmanSolution:
+        self.solves += 1
+        reward = model_reward(self.fr, self.fc, eta[:-1], float(eta[-1]), cost_weights)
+        return self.solver.solve(reward)
+
+    # ------------------------------------------------------------------ inner process
+    def inner_process(self, cost_weights: torch.Tensor, eta0: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Algorithm 2 for one ω_c ``[d]``: ``eta0`` ``[n, p]`` -> (η̄ ``[n, p]``,
+        final η ``[n, p]``) of the local learners."""
+        eta = eta0.clone()
+        acc = torch.zeros_like(eta)
+        alpha_sum = 0.0
+        for k in range(self.K):
+            a = self.steps.alpha(k)
+            acc += a * eta
+            alpha_sum += a
+            if k == self.K - 1:
+                break
+            grads = torch.stack([
+                dual_gradient(self.solve(eta[i], cost_weights), st, self.fr, self.fc,
+                              cost_weights)
+                for i, st in enumerate(self.stats)])
+            eta = self.comm.mix(eta, self.inner_schedule(k), "eta") - a * self.m[:, None] * grads
+        return acc / alpha_sum, eta
+
+    def _inner_groups(self, cost_all: torch.Tensor, previous: list[list[int]]) -> list[list[int]]:
+        """Learners whose inner processes are bit-identical computations: equal ω_c and
+        warm-started from one shared process (or all from the initial η). Decided from
+        globally known values only, so every process of a distributed run agrees."""
+        n = self.state.outer_iteration
+        owner = {u: i for i, g in enumerate(previous) for u in g} if n > 0 else {}
+        groups: list[list[int]] = []
+        for u in range(self.n_learners):
+            for g in groups:
+                r = g[0]
+                same_prev = n == 0 or owner.get(u) == owner.get(r)
+                if self.merge and same_prev and torch.equal(cost_all[u], cost_all[r]):
+                    g.append(u)
+                    break
+            else:
+                groups.append([u])
+        return groups
+
+    # ------------------------------------------------------------------ outer iteration
+    def outer_step(self) -> dict:
+        """One iteration of Algorithm 1 for every local learner; returns diagnostics."""
+        st, n = self.state, self.state.outer_iteration
+        t0 = time.perf_counter()
+        cost_all = self.comm.all_gather(st.cost_weights, "cost_weights")  # [N_L, d]
+        groups = self._inner_groups(cost_all, st.groups)
+        new_eta = torch.empty_like(st.eta)
+        eta_bar_own = torch.empty_like(st.eta_bar)
+        for g in groups:
+            bar, last = self.inner_process(cost_all[g[0]], st.eta[g[0]])
+            for u in g:
+                new_eta[u] = last
+                for i, v in enumerate(self.local):
+                    if v == u:
+                        eta_bar_own[i] = bar[i]
+        st.eta, st.eta_bar, st.groups = new_eta, eta_bar_own, groups
+
+        # Local gradient approximation at each learner's own (ω_c, η̄).
+        lga = torch.stack([
+            local_gradient(self.solve(st.eta_bar[i], st.cost_weights[i]), self.stats[i],
+                           self.fc, float(st.eta_bar[i, -1]))
+            for i in range(len(self.local))])
+        W_bar = self.outer_schedule(n)
+        if st.tracker is None:
+            tracker = lga
+        else:
+            tracker = self.comm.mix(st.tracker, W_bar, "tracker") + lga - st.last_lga
+        target = (st.cost_weights + self.n_learners * tracker / self.rho).clamp(0.0, 1.0)
+        if self.prune_accrued:
+            target = torch.where(self.accrued, 0.0, target)
+        half = st.cost_weights + self.steps.beta(n) * (target - st.cost_weights)
+        st.cost_weights = self.comm.mix(half, W_bar, "cost_weights")
+        st.tracker, st.last_lga = tracker, lga
+        st.outer_iteration = n + 1
+        info = {
+            "outer_iteration": n,
+            "inner_processes": len(groups),
+            "seconds": time.perf_counter() - t0,
+            "multiplier": st.eta_bar[:, -1].tolist(),
+            "lga_norm": lga.norm(dim=1).tolist(),
+        }
+        self.history.append(info)
+        return info
+
+    def train(self, outer_iterations: int,
+              callback: Callable[[DICRL, dict], None] | None = None) -> LearnerState:
+        """Run ``outer_iterations`` outer iterations (with a progress bar)."""
+        if outer_iterations < 1:
+            raise ValueError(f"outer_iterations must be >= 1, got {outer_iterations}.")
+        it = range(outer_iterations)
+        bar = None
+        if self.progress:
+            from tqdm.auto import tqdm
+            bar = tqdm(it, desc=f"D-ICRL x{self.n_learners}" if self.n_learners > 1 else "C-ICRL")
+            it = bar
+        for _ in it:
+            info = self.outer_step()
+            if bar is not None:
+                bar.set_postfix(lam=f"{info['multiplier'][0]:.2f}",
+                                procs=info["inner_processes"])
+            if callback is not None:
+                callback(self, info)
+        return self.state
+
+    # ------------------------------------------------------------------ outputs
+    def policy(self, i: int) -> SoftBellmanSolution:
+        """Local learner ``i``'s learned policy π_{η̄, ω_c}."""
+        return self.solve(self.state.eta_bar[i], self.state.cost_weights[i])
+
+    def disagreement(self) -> float:
+        """max pairwise ‖ω_c^[v] − ω_c^[v']‖ over all learners."""
+        cw = self.comm.all_gather(self.state.cost_weights, "cost_weights")
+        return float(torch.cdist(cw, cw).max())

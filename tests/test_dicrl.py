@@ -1,0 +1,148 @@
+"""D-ICRL trainer mechanics on a tiny instance: determinism, consensus, C-ICRL, the
+inner-process merge, input checks before any computation, and the privacy audit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dicrl_torch.algos.dicrl import DICRL, StepSizes
+from dicrl_torch.comm import (
+    ALLOWED_FIELDS,
+    CompleteSchedule,
+    GraphAssumptionError,
+    MatrixSchedule,
+    RingSchedule,
+    SimulatedCommunicator,
+    TimeVaryingSchedule,
+)
+from dicrl_torch.demos import partition_demonstrations
+from dicrl_torch.demos.experts import expert_solution, sample_trajectories
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
+from dicrl_torch.solvers.factored import FactoredSoftBellman
+
+SPLIT = [2, 3, 5]
+
+
+@pytest.fixture(scope="module")
+def setup():
+    layout = GridLayout(size=3, starts=((0, 2), (2, 0)), goals=((2, 2), (0, 0)),
+                        obstacles=((1, 1),), forbidden_actions=("NE",))
+    model = TabularGridModel(layout=layout, horizon=5, gamma=0.95)
+    solver = FactoredSoftBellman(model=model, dtype=torch.float64)
+    rb, cb = GoalClosenessRewardBasis(model), SharedIndicatorCostBasis(model)
+    experts = expert_solution(solver=solver, reward_features=rb(),
+                              reward_weights=rb.true_weights())
+    demos = sample_trajectories(experts, sum(SPLIT), np.random.default_rng(0))
+    return solver, rb, cb, partition_demonstrations(demos, SPLIT)
+
+
+def make(setup, *, record=False, init_cost=None, inner=None, **kw):
+    solver, rb, cb, shards = setup
+    n = len(shards)
+    if init_cost is None:
+        init_cost = torch.linspace(0.2, 0.4, n, dtype=torch.float64).unsqueeze(1).expand(
+            n, cb.dim).clone()
+    return DICRL(solver=solver, reward_basis=rb, cost_basis=cb, shards=shards,
+                 trajectory_counts=[s.n_trajectories for s in shards],
+                 communicator=SimulatedCommunicator(n, record=record),
+                 inner_schedule=inner or TimeVaryingSchedule(n_learners=n, period=2),
+                 outer_schedule=CompleteSchedule(n_learners=n),
+                 steps=StepSizes(alpha_bar=0.02), inner_steps=3, lsca_curvature=10.0,
+                 init_cost_weights=init_cost, **kw)
+
+
+def test_same_seed_same_numbers_and_consensus(setup):
+    a, b = make(setup), make(setup)
+    a.train(3)
+    b.train(3)
+    assert torch.equal(a.state.cost_weights, b.state.cost_weights)
+    assert torch.equal(a.state.eta_bar, b.state.eta_bar)
+    # a complete outer graph averages ω_c exactly: all learners agree after a step
+    assert a.disagreement() == 0.0
+    assert ((a.state.cost_weights >= 0) & (a.state.cost_weights <= 1)).all()
+    # distinct initial ω_c: distinct inner processes, and their warm starts stay distinct
+    assert [h["inner_processes"] for h in a.history] == [3, 3, 3]
+
+
+def test_merging_identical_inner_processes_changes_nothing(setup):
+    # a common start: one inner process serves all learners, bit for bit
+    merged = make(setup, init_cost=0.3)
+    separate = make(setup, init_cost=0.3, merge_identical_inner=False)
+    merged.train(3)
+    separate.train(3)
+    assert [h["inner_processes"] for h in merged.history] == [1, 1, 1]
+    assert torch.equal(merged.state.cost_weights, separate.state.cost_weights)
+    assert torch.equal(merged.state.eta_bar, separate.state.eta_bar)
+    assert torch.equal(merged.state.tracker, separate.state.tracker)
+    assert merged.solves < separate.solves
+
+
+def test_c_icrl_is_one_learner(setup):
+    solver, rb, cb, shards = setup
+    from dicrl_torch.demos.storage import Demonstrations
+
+    pooled = Demonstrations(states=np.concatenate([s.states for s in shards]),
+                            actions=np.concatenate([s.actions for s in shards]),
+                            n_cells=shards[0].n_cells, n_actions=shards[0].n_actions)
+    c = DICRL(solver=solver, reward_basis=rb, cost_basis=cb, shards=[pooled],
+              trajectory_counts=[pooled.n_trajectories],
+              communicator=SimulatedCommunicator(1),
+              inner_schedule=CompleteSchedule(n_learners=1),
+              outer_schedule=CompleteSchedule(n_learners=1), inner_steps=3)
+    c.train(2)
+    assert c.state.cost_weights.shape == (1, cb.dim)
+    assert torch.isfinite(c.state.eta_bar).all()
+
+
+def test_the_lga_raises_unvisited_features_and_lambda_falls(setup):
+    t = make(setup, init_cost=0.3)
+    t.train(4)
+    cw = t.state.cost_weights[0]
+    accrued = torch.stack([s.cost_accrual > 0 for s in t.stats]).any(0)
+    # features no demonstration accrues end up above those they all accrue
+    assert cw[~accrued].mean() > cw[accrued].mean()
+    assert t.state.eta_bar[0, -1] < -1.0  # the penalty multiplier grows
+
+
+def test_privacy_audit_only_documented_fields(setup):
+    t = make(setup, record=True)
+    t.train(2)
+    d, p = t.fc.dim, t.fr.dim + 1
+    sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,)}
+    assert t.comm.messages
+    for msg in t.comm.messages:
+        assert msg.field in ALLOWED_FIELDS
+        assert msg.shape == sizes[msg.field]
+    with pytest.raises(ValueError, match="may not leave"):
+        t.comm.all_gather(torch.zeros(3, d), "cost_accrual")
+
+
+def test_bad_configurations_are_refused_before_computing(setup):
+    solver, rb, cb, shards = setup
+    with pytest.raises(GraphAssumptionError, match="Assumption 3"):
+        make(setup, inner=None, **{}).__class__(
+            solver=solver, reward_basis=rb, cost_basis=cb, shards=shards,
+            trajectory_counts=SPLIT, communicator=SimulatedCommunicator(3),
+            inner_schedule=RingSchedule(n_learners=3),
+            outer_schedule=TimeVaryingSchedule(n_learners=3, period=2))
+    with pytest.raises(GraphAssumptionError, match="Assumption 1"):
+        make(setup, inner=MatrixSchedule([np.eye(3)]))
+    with pytest.raises(ValueError, match="trajectory_counts"):
+        DICRL(solver=solver, reward_basis=rb, cost_basis=cb, shards=shards,
+              trajectory_counts=[3, 3, 4], communicator=SimulatedCommunicator(3),
+              inner_schedule=RingSchedule(n_learners=3),
+              outer_schedule=CompleteSchedule(n_learners=3))
+    with pytest.raises(ValueError, match="shards"):
+        DICRL(solver=solver, reward_basis=rb, cost_basis=cb, shards=shards[:2],
+              trajectory_counts=SPLIT, communicator=SimulatedCommunicator(3),
+              inner_schedule=RingSchedule(n_learners=3),
+              outer_schedule=CompleteSchedule(n_learners=3))
+    with pytest.raises(ValueError, match="beta_power"):
+        StepSizes(beta_power=0.4)
+    with pytest.raises(ValueError, match="beta_bar"):
+        StepSizes(beta_bar=1.5)
+    with pytest.raises(ValueError, match="alpha_bar"):
+        StepSizes(alpha_bar=-1.0)
