@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install run test test-all lint bench clean
+.PHONY: install run demo test test-all lint bench clean
 
 install: $(STAMP)
 
@@ -16,6 +16,9 @@ $(STAMP): pyproject.toml
 
 run: install
 	$(PY) experiments/train.py experiment=quick
+
+demo: install
+	$(PY) experiments/demo_foundation.py
 
 test: install
 	$(PY) -m pytest -q

@@ -59,3 +59,37 @@ def test_demo_runs_end_to_end(tmp_path):
     assert (tmp_path / "demos_learner1.npz").exists()
     assert (tmp_path / "visitation_ground_truth.png").exists()
     assert str(tmp_path) in out.stdout
+
+
+@pytest.mark.parametrize("graph", group_options("graph"))
+@pytest.mark.parametrize("logger", group_options("logger"))
+def test_train_config_groups_instantiate(graph, logger, tmp_path):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=[f"graph={graph}", f"logger={logger}"])
+    for n in (1, 3, 4):
+        inner = build(cfg.graph.inner, n_learners=n)
+        outer = build(cfg.graph.outer, n_learners=n)
+        assert inner(0).shape == outer(0).shape == (n, n)
+        assert build(cfg.comm, n_learners=n).n_learners == n
+    steps = instantiate(cfg.algo.steps)
+    assert 0 < steps.beta(0) < 1 and steps.alpha(0) > steps.alpha(1)
+    kwargs = {"root": tmp_path} if "TensorBoard" in cfg.logger._target_ else {}
+    instantiate(cfg.logger, **kwargs).close()
+
+
+def test_train_runs_end_to_end(tmp_path):
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={tmp_path}",
+         "env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
+         "algo.outer_iterations=1", "algo.inner_steps=2", "eval_episodes=10",
+         "n_demonstrations=10", "split=[4,6]"],
+        capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert set(res["methods"]) == {"D-ICRL", "C-ICRL", "Experts (ground truth)",
+                                   "Experts (nominal)"}
+    assert len(res["methods"]["D-ICRL"]["learners"]) == 2
+    for key in ("CR_mean", "CR_std", "FPR", "FNR", "CVR", "RFD", "SR"):
+        assert key in res["methods"]["D-ICRL"]["learners"][0]
+    assert (tmp_path / "tb" / "learner0").is_dir() and (tmp_path / "tb" / "network").is_dir()
+    assert "FPR" in out.stdout and str(tmp_path) in out.stdout
