@@ -48,10 +48,19 @@ def evaluate(policy, ctx) -> dict:
     return {"CR_mean": ev.cr_mean, "CR_std": ev.cr_std, "CVR": ev.cvr}
 
 
-def learner_row(trainer: DICRL, i: int, ctx, threshold: float) -> dict:
-    cw = trainer.state.cost_weights[i]
-    learned = learned_constraints(cw, threshold)
+def learner_row(trainer: DICRL, i: int, ctx, threshold: float,
+                prune_min_gain: float | None) -> dict:
+    raw = learned_constraints(trainer.state.cost_weights[i], threshold)
+    extra = {"FPR_before_pruning": false_positive_rate(raw, ctx["true"]),
+             "FNR_before_pruning": false_negative_rate(raw, ctx["true"])}
+    if prune_min_gain is not None:
+        # Pruned constraints change the likelihood by < min_gain: the policy is the same.
+        cw, pruned = trainer.prune_constraints(i, threshold, prune_min_gain, progress=True)
+        trainer.state.cost_weights[i] = cw
+        extra["pruned"] = len(pruned)
+    learned = learned_constraints(trainer.state.cost_weights[i], threshold)
     row = evaluate(trainer.policy(i).policy_at, ctx)
+    row.update(extra)
     row.update(FPR=false_positive_rate(learned, ctx["true"]),
                FNR=false_negative_rate(learned, ctx["true"]),
                RFD=reward_function_distance(trainer.state.eta_bar[i, :-1], ctx["w_true"]),
@@ -155,6 +164,25 @@ def main(cfg: DictConfig) -> None:
         logger.scalar("network", "consensus/max_pairwise_cost_distance",
                       trainer.disagreement(), n)
 
+    ckpt_path = out / "checkpoint.pt"
+    saved: dict = {}
+    if cfg.resume and ckpt_path.exists():
+        # weights_only: tensors and plain containers, never arbitrary pickled objects
+        saved = torch.load(ckpt_path, weights_only=True)
+        done = {k: v["outer_iteration"] for k, v in saved.items()}
+        print(f"resuming from {ckpt_path} (outer iterations done: {done})")
+    elif cfg.resume:
+        print(f"resume=true but no checkpoint in {out}; starting from scratch")
+
+    def checkpoint(name: str, trainer: DICRL) -> None:
+        saved[name] = trainer.state_dict()
+        tmp = ckpt_path.with_suffix(".tmp")
+        torch.save(saved, tmp)
+        tmp.replace(ckpt_path)  # atomic: a crash leaves the previous checkpoint intact
+        crash = os.environ.get("DICRL_CRASH_AFTER")  # fault injection for tests
+        if crash == f"{name}:{trainer.state.outer_iteration}":
+            os.kill(os.getpid(), 9)
+
     methods: dict = {}
     runs = [("D-ICRL", shards, len(shards), lambda i: f"learner{i}")]
     if a.run_c_icrl:
@@ -164,10 +192,19 @@ def main(cfg: DictConfig) -> None:
     trainers = {}
     for name, shards_, n_l, run_of in runs:
         trainer = make_trainer(shards_, n_l)
-        trainer.train(a.outer_iterations,
-                      callback=lambda t, info, r=run_of: log_outer(r, t, info))
+        if name in saved:
+            trainer.load_state_dict(saved[name])
+
+        def after_outer(t, info, r=run_of, name=name):
+            log_outer(r, t, info)
+            if t.state.outer_iteration % cfg.checkpoint_every == 0:
+                checkpoint(name, t)
+
+        trainer.train(a.outer_iterations, callback=after_outer)
+        checkpoint(name, trainer)
         trainers[name] = trainer
-        rows = [learner_row(trainer, i, ctx, a.threshold) for i in range(n_l)]
+        rows = [learner_row(trainer, i, ctx, a.threshold, a.prune_min_gain)
+                for i in range(n_l)]
         methods[name] = {"D": "✓" if n_l > 1 else "×", "NATR": "✓", "learners": rows}
         for i in range(n_l):
             img = constraint_map(layout, cost_basis, trainer.state.cost_weights[i], a.threshold,
@@ -189,7 +226,8 @@ def main(cfg: DictConfig) -> None:
         "experiment": cfg.name, "wall_s": time.perf_counter() - t_start,
         "methods": {k: {"learners": v["learners"]} for k, v in methods.items()},
         "consensus_max_pairwise_cost_distance": d.disagreement(),
-        "history": {k: t.history for k, t in trainers.items()},
+        "history": {k: [{**h, "seconds": None} for h in t.history]  # timings vary run to run
+                    for k, t in trainers.items()},
         "config": OmegaConf.to_container(cfg, resolve=True),
     }
     tmp = out / "results.json.tmp"

@@ -146,3 +146,30 @@ def test_bad_configurations_are_refused_before_computing(setup):
         StepSizes(beta_bar=1.5)
     with pytest.raises(ValueError, match="alpha_bar"):
         StepSizes(alpha_bar=-1.0)
+
+
+def test_pruning_keeps_exactly_the_constraints_the_likelihood_needs(setup):
+    from dicrl_torch.algos.icrl import log_likelihood, model_reward
+
+    t = make(setup, init_cost=0.6)
+    t.train(2)
+    n_learned = int((t.state.cost_weights[0] >= 0.5).sum())
+    assert n_learned > 0
+    assert t.prune_constraints(0, min_gain=-float("inf"))[1] == []
+    assert len(t.prune_constraints(0, min_gain=float("inf"))[1]) == n_learned
+    gain = 1e-3
+    cw, pruned = t.prune_constraints(0, min_gain=gain)
+    eta = t.state.eta_bar[0]
+    demos = t.shards[0]
+
+    def ll(w):
+        sol = t.solver.solve(model_reward(t.fr, t.fc, eta[:-1], float(eta[-1]), w),
+                             forward=False)
+        return log_likelihood(sol, demos) / demos.n_trajectories
+
+    base = ll(t.state.cost_weights[0])
+    for j in torch.nonzero(t.state.cost_weights[0] >= 0.5).flatten().tolist():
+        w = t.state.cost_weights[0].clone()
+        w[j] = 0.0
+        assert (base - ll(w) < gain) == (j in pruned)
+    assert (cw[pruned] == 0).all()

@@ -38,6 +38,7 @@ from dicrl_torch.algos.icrl import (
     LocalStatistics,
     dual_gradient,
     local_gradient,
+    log_likelihood,
     model_reward,
 )
 from dicrl_torch.comm.graphs import MixingSchedule, check_inner_schedule, check_outer_schedule
@@ -151,6 +152,7 @@ class DICRL:
         self.fr, self.fc = reward_basis(), cost_basis()
         self.stats = [LocalStatistics.from_demonstrations(s, self.fr, self.fc, self.model.gamma)
                       for s in shards]
+        self.shards = list(shards)
         self.m = torch.tensor([float(trajectory_counts[v]) for v in local], dtype=torch.float64)
         self.inner_schedule, self.outer_schedule = inner_schedule, outer_schedule
         self.steps, self.K = steps, inner_steps
@@ -268,14 +270,19 @@ class DICRL:
 
     def train(self, outer_iterations: int,
               callback: Callable[[DICRL, dict], None] | None = None) -> LearnerState:
-        """Run ``outer_iterations`` outer iterations (with a progress bar)."""
+        """Run outer iterations until ``outer_iterations`` in total (a resumed trainer
+        continues where its checkpoint stopped), with a progress bar."""
         if outer_iterations < 1:
             raise ValueError(f"outer_iterations must be >= 1, got {outer_iterations}.")
-        it = range(outer_iterations)
+        start = self.state.outer_iteration
+        if start >= outer_iterations:
+            return self.state
+        it = range(start, outer_iterations)
         bar = None
         if self.progress:
             from tqdm.auto import tqdm
-            bar = tqdm(it, desc=f"D-ICRL x{self.n_learners}" if self.n_learners > 1 else "C-ICRL")
+            bar = tqdm(it, desc=f"D-ICRL x{self.n_learners}" if self.n_learners > 1 else "C-ICRL",
+                       initial=start, total=outer_iterations)
             it = bar
         for _ in it:
             info = self.outer_step()
@@ -286,10 +293,77 @@ class DICRL:
                 callback(self, info)
         return self.state
 
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        """Everything needed to continue bit for bit (tensors, ints, lists only)."""
+        st = self.state
+        return {
+            "cost_weights": st.cost_weights, "eta": st.eta, "eta_bar": st.eta_bar,
+            "tracker": st.tracker, "last_lga": st.last_lga,
+            "outer_iteration": st.outer_iteration, "groups": st.groups,
+            "solves": self.solves, "history": self.history,
+            "fingerprint": self.fingerprint(),
+        }
+
+    def load_state_dict(self, sd: dict) -> None:
+        if sd.get("fingerprint") != self.fingerprint():
+            raise ValueError("This checkpoint was written by a differently configured trainer "
+                             f"(checkpoint {sd.get('fingerprint')!r}, trainer "
+                             f"{self.fingerprint()!r}); resume with the same configuration.")
+        self.state = LearnerState(
+            cost_weights=sd["cost_weights"], eta=sd["eta"], eta_bar=sd["eta_bar"],
+            tracker=sd["tracker"], last_lga=sd["last_lga"],
+            outer_iteration=int(sd["outer_iteration"]), groups=sd["groups"])
+        self.solves, self.history = int(sd["solves"]), list(sd["history"])
+
+    def fingerprint(self) -> str:
+        """Shapes and settings a checkpoint must match."""
+        return (f"NL={self.n_learners} local={self.local} d={self.fc.dim} lr={self.fr.dim} "
+                f"K={self.K} steps={self.steps} rho={self.rho} prune={self.prune_accrued} "
+                f"m={self.m.tolist()} T={self.model.horizon} S1={self.model.n_cells} "
+                f"N={self.model.n_experts}")
+
     # ------------------------------------------------------------------ outputs
     def policy(self, i: int) -> SoftBellmanSolution:
         """Local learner ``i``'s learned policy π_{η̄, ω_c}."""
         return self.solve(self.state.eta_bar[i], self.state.cost_weights[i])
+
+    def prune_constraints(self, i: int, threshold: float = 0.5, min_gain: float = 1e-3,
+                          progress: bool = False) -> tuple[torch.Tensor, list[int]]:
+        """Keep only the learned constraints that the data supports.
+
+        For each feature ``j`` with ``ω_c,j >= threshold``, re-solve with ``ω_c,j = 0``
+        and measure the drop of local learner ``i``'s log-likelihood per trajectory. A
+        constraint whose removal costs less than ``min_gain`` nats per trajectory does
+        not change how the demonstrations are explained (the policy avoids that feature
+        anyway), so it is pruned: the smallest constraint set explaining the data, as
+        Scobee & Sastry's greedy stops when the likelihood stops improving. Uses only the
+        learner's own demonstrations.
+
+        Returns:
+            (pruned ω_c ``[d]``, indices of the pruned features).
+        """
+        eta = self.state.eta_bar[i]
+        cw = self.state.cost_weights[i].clone()
+        base = log_likelihood(self.solver.solve(model_reward(
+            self.fr, self.fc, eta[:-1], float(eta[-1]), cw), forward=False), self.shards[i])
+        m = self.shards[i].n_trajectories
+        candidates = torch.nonzero(cw >= threshold).flatten().tolist()
+        if progress:
+            from tqdm.auto import tqdm
+            candidates = tqdm(candidates, desc=f"prune learner {i + 1}", leave=False)
+        pruned = []
+        for j in candidates:
+            trial = cw.clone()
+            trial[j] = 0.0
+            sol = self.solver.solve(model_reward(self.fr, self.fc, eta[:-1], float(eta[-1]),
+                                                 trial), forward=False)
+            self.solves += 1
+            if (base - log_likelihood(sol, self.shards[i])) / m < min_gain:
+                pruned.append(j)
+        out = self.state.cost_weights[i].clone()
+        out[pruned] = 0.0
+        return out, pruned
 
     def disagreement(self) -> float:
         """max pairwise ‖ω_c^[v] − ω_c^[v']‖ over all learners."""

@@ -3,8 +3,17 @@ communicators."""
 
 from dicrl_torch.comm.communicator import (
     ALLOWED_FIELDS,
+    MessageRecord,
     SimulatedCommunicator,
     fixed_order_mix,
+)
+from dicrl_torch.comm.distributed import (
+    ConfigMismatchError,
+    DistributedCommunicator,
+    LearnerProcessError,
+    PeerFailureError,
+    shard_for_rank,
+    spawn_learners,
 )
 from dicrl_torch.comm.graphs import (
     CompleteSchedule,
@@ -20,6 +29,13 @@ from dicrl_torch.comm.graphs import (
 
 __all__ = [
     "ALLOWED_FIELDS",
+    "ConfigMismatchError",
+    "DistributedCommunicator",
+    "LearnerProcessError",
+    "MessageRecord",
+    "PeerFailureError",
+    "shard_for_rank",
+    "spawn_learners",
     "SimulatedCommunicator",
     "fixed_order_mix",
     "CompleteSchedule",
