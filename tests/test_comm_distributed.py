@@ -11,12 +11,12 @@ from __future__ import annotations
 import os
 import time
 
-import numpy as np
 import pytest
+import tiny_dicrl
 import torch
 import torch.distributed as dist
 
-from dicrl_torch.algos.dicrl import DICRL, StepSizes
+from dicrl_torch.algos.dicrl import DICRL
 from dicrl_torch.comm import (
     ALLOWED_FIELDS,
     CompleteSchedule,
@@ -33,44 +33,18 @@ from dicrl_torch.comm.distributed import (
     shard_for_rank,
     spawn_learners,
 )
-from dicrl_torch.demos import partition_demonstrations
-from dicrl_torch.demos.experts import expert_solution, sample_trajectories
-from dicrl_torch.envs.grid import GridLayout, TabularGridModel
-from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
-from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 pytestmark = pytest.mark.skipif(not (dist.is_available() and dist.is_gloo_available()),
                                 reason="torch.distributed with gloo is not available")
 
-SPLIT = [2, 3, 5]
+SPLIT = tiny_dicrl.SPLIT
+build_tiny = tiny_dicrl.build_tiny
 COMM_TIMEOUT_S = 30.0  # generous: 3-4 processes start on a 2-core machine
 
 
 # ---------------------------------------------------------------------- the tiny instance
-def build_tiny():
-    """The instance of tests/test_dicrl.py, rebuilt identically in every process."""
-    layout = GridLayout(size=3, starts=((0, 2), (2, 0)), goals=((2, 2), (0, 0)),
-                        obstacles=((1, 1),), forbidden_actions=("NE",))
-    model = TabularGridModel(layout=layout, horizon=5, gamma=0.95)
-    solver = FactoredSoftBellman(model=model, dtype=torch.float64)
-    rb, cb = GoalClosenessRewardBasis(model), SharedIndicatorCostBasis(model)
-    experts = expert_solution(solver=solver, reward_features=rb(),
-                              reward_weights=rb.true_weights())
-    demos = sample_trajectories(experts, sum(SPLIT), np.random.default_rng(0))
-    return solver, rb, cb, partition_demonstrations(demos, SPLIT)
-
-
 def make_trainer(tiny, shards, communicator) -> DICRL:
-    solver, rb, cb, _ = tiny
-    n = len(SPLIT)
-    init_cost = torch.linspace(0.2, 0.4, n, dtype=torch.float64).unsqueeze(1).expand(
-        n, cb.dim).clone()
-    return DICRL(solver=solver, reward_basis=rb, cost_basis=cb, shards=shards,
-                 trajectory_counts=SPLIT, communicator=communicator,
-                 inner_schedule=TimeVaryingSchedule(n_learners=n, period=2),
-                 outer_schedule=CompleteSchedule(n_learners=n),
-                 steps=StepSizes(alpha_bar=0.02), inner_steps=3, lsca_curvature=10.0,
-                 init_cost_weights=init_cost)
+    return tiny_dicrl.make_trainer(tiny, shards=shards, communicator=communicator)
 
 
 def random_inputs(seed: int, n: int) -> tuple[list[torch.Tensor], list[torch.Tensor]]:

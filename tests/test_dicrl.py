@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import tiny_dicrl
 import torch
 
 from dicrl_torch.algos.dicrl import DICRL, StepSizes
@@ -17,41 +18,18 @@ from dicrl_torch.comm import (
     SimulatedCommunicator,
     TimeVaryingSchedule,
 )
-from dicrl_torch.demos import partition_demonstrations
-from dicrl_torch.demos.experts import expert_solution, sample_trajectories
-from dicrl_torch.envs.grid import GridLayout, TabularGridModel
-from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
-from dicrl_torch.solvers.factored import FactoredSoftBellman
 
-SPLIT = [2, 3, 5]
+SPLIT = tiny_dicrl.SPLIT
 
 
 @pytest.fixture(scope="module")
 def setup():
-    layout = GridLayout(size=3, starts=((0, 2), (2, 0)), goals=((2, 2), (0, 0)),
-                        obstacles=((1, 1),), forbidden_actions=("NE",))
-    model = TabularGridModel(layout=layout, horizon=5, gamma=0.95)
-    solver = FactoredSoftBellman(model=model, dtype=torch.float64)
-    rb, cb = GoalClosenessRewardBasis(model), SharedIndicatorCostBasis(model)
-    experts = expert_solution(solver=solver, reward_features=rb(),
-                              reward_weights=rb.true_weights())
-    demos = sample_trajectories(experts, sum(SPLIT), np.random.default_rng(0))
-    return solver, rb, cb, partition_demonstrations(demos, SPLIT)
+    return tiny_dicrl.build_tiny()
 
 
-def make(setup, *, record=False, init_cost=None, inner=None, **kw):
-    solver, rb, cb, shards = setup
-    n = len(shards)
-    if init_cost is None:
-        init_cost = torch.linspace(0.2, 0.4, n, dtype=torch.float64).unsqueeze(1).expand(
-            n, cb.dim).clone()
-    return DICRL(solver=solver, reward_basis=rb, cost_basis=cb, shards=shards,
-                 trajectory_counts=[s.n_trajectories for s in shards],
-                 communicator=SimulatedCommunicator(n, record=record),
-                 inner_schedule=inner or TimeVaryingSchedule(n_learners=n, period=2),
-                 outer_schedule=CompleteSchedule(n_learners=n),
-                 steps=StepSizes(alpha_bar=0.02), inner_steps=3, lsca_curvature=10.0,
-                 init_cost_weights=init_cost, **kw)
+def make(setup, *, record=False, **kw):
+    return tiny_dicrl.make_trainer(
+        setup, communicator=SimulatedCommunicator(len(SPLIT), record=record), **kw)
 
 
 def test_same_seed_same_numbers_and_consensus(setup):
