@@ -148,7 +148,8 @@ def main(cfg: DictConfig) -> None:
             steps=steps, inner_steps=a.inner_steps,
             lsca_curvature=a.lsca_curvature, prune_accrued=a.prune_accrued,
             init_cost_weights=a.init_cost_weights, init_reward_weights=a.init_reward_weights,
-            init_multiplier=a.init_multiplier, progress=True)
+            init_multiplier=a.init_multiplier, inner_method=a.inner_method,
+            inner_step=a.inner_step * scale, progress=True)
 
     def log_outer(run_of, trainer: DICRL, info: dict) -> None:
         n = info["outer_iteration"]

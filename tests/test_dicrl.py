@@ -89,7 +89,7 @@ def test_privacy_audit_only_documented_fields(setup):
     t = make(setup, record=True)
     t.train(2)
     d, p = t.fc.dim, t.fr.dim + 1
-    sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,)}
+    sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,), "inner_tracker": (p,)}
     assert t.comm.messages
     for msg in t.comm.messages:
         assert msg.field in ALLOWED_FIELDS
@@ -151,3 +151,23 @@ def test_pruning_keeps_exactly_the_constraints_the_likelihood_needs(setup):
         w[j] = 0.0
         assert (base - ll(w) < gain) == (j in pruned)
     assert (cw[pruned] == 0).all()
+
+
+def test_gradient_tracking_inner_variant_converges_faster(setup):
+    from dicrl_torch.algos.icrl import dual_gradient
+
+    cw = torch.full((setup[2].dim,), 0.3, dtype=torch.float64)
+
+    def residual(**kw):
+        t = make(setup, init_cost=0.3, **kw)
+        t.K = 20
+        bar, _ = t.inner_process(cw, t.state.eta[0])
+        return float(torch.stack([t.m[i] * dual_gradient(t.solve(bar[i], cw), st, t.fr,
+                                                         t.fc, cw)
+                                  for i, st in enumerate(t.stats)]).sum(0).norm())
+
+    paper = residual()
+    tracking = residual(inner_method="gradient_tracking", inner_step=0.02)
+    assert tracking < 0.5 * paper  # measured: 10.7 vs 42.3 at K = 20
+    with pytest.raises(ValueError, match="inner_method"):
+        make(setup, inner_method="newton")

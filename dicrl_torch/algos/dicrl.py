@@ -18,6 +18,11 @@ Outer step (Algorithm 1) for learner v::
     ω̃^[v]    = Proj_[0,1](ω_c^[v] + N_L y^[v] / ρ)              (LSCA; the paper: ρ = 1)
     ω_c^[v](n+1) = Σ_v' W̄[v,v'] (ω_c^[v'] + β(n)(ω̃^[v'] − ω_c^[v']))
 
+Beyond the paper, ``inner_method="gradient_tracking"`` replaces Algorithm 2's
+diminishing step with a constant step and a tracker of the network-average gradient
+(DIGing): ``η ← W η − α s``, ``s ← W s + g(η_new) − g(η_old)``, ``s(0) = g(η(0))``, with
+``g = m^[v] ∇G^[v]``; the output is the final η.
+
 Departures from the paper, each optional and documented in the config: the LSCA
 curvature ρ (the printed step ``ω_c + N_L y`` moves by the raw likelihood gradient,
 whose scale grows with m and |λ|); warm starts of η across outer iterations; and
@@ -112,6 +117,8 @@ class DICRL:
         prune_accrued: zero features the learner's own demonstrations accrue.
         merge_identical_inner: compute bit-identical inner processes once (the results
             are the same either way; tested).
+        inner_method: ``"paper"`` (Algorithm 2) or ``"gradient_tracking"`` (constant
+            ``inner_step``, see the module docstring).
         init_cost_weights: ``[N_L, d]`` or a scalar; init_reward_weights ``[l_r]`` or
             scalar; init_multiplier λ(0).
     """
@@ -125,7 +132,8 @@ class DICRL:
                  init_cost_weights: float | torch.Tensor = 0.5,
                  init_reward_weights: float | torch.Tensor = 0.0,
                  init_multiplier: float = -1.0, progress: bool = False,
-                 merge_identical_inner: bool = True) -> None:
+                 merge_identical_inner: bool = True, inner_method: str = "paper",
+                 inner_step: float = 0.01) -> None:
         self.comm = communicator
         N_L = communicator.n_learners
         local = communicator.local_ids
@@ -143,6 +151,12 @@ class DICRL:
         # Assumptions 1-3 are checked before any computation.
         check_inner_schedule(inner_schedule, horizon=max(100, inner_steps))
         check_outer_schedule(outer_schedule)
+        if inner_method not in ("paper", "gradient_tracking"):
+            raise ValueError(f"inner_method must be 'paper' or 'gradient_tracking', got "
+                             f"{inner_method!r}.")
+        if not (inner_step > 0 and math.isfinite(inner_step)):
+            raise ValueError(f"inner_step must be a positive number, got {inner_step}.")
+        self.inner_method, self.inner_step = inner_method, float(inner_step)
         if inner_steps < 2:
             raise ValueError(f"inner_steps (K) must be >= 2, got {inner_steps}.")
         if not lsca_curvature > 0:
@@ -185,10 +199,18 @@ class DICRL:
         return self.solver.solve(reward)
 
     # ------------------------------------------------------------------ inner process
+    def _scaled_gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor) -> torch.Tensor:
+        """``m^[v] ∇G^[v](η^[v]; ω_c)`` of every local learner: ``[n, p]``."""
+        return self.m[:, None] * torch.stack([
+            dual_gradient(self.solve(eta[i], cost_weights), st, self.fr, self.fc, cost_weights)
+            for i, st in enumerate(self.stats)])
+
     def inner_process(self, cost_weights: torch.Tensor, eta0: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Algorithm 2 for one ω_c ``[d]``: ``eta0`` ``[n, p]`` -> (η̄ ``[n, p]``,
+        """The inner process for one ω_c ``[d]``: ``eta0`` ``[n, p]`` -> (η̄ ``[n, p]``,
         final η ``[n, p]``) of the local learners."""
+        if self.inner_method == "gradient_tracking":
+            return self._inner_gradient_tracking(cost_weights, eta0)
         eta = eta0.clone()
         acc = torch.zeros_like(eta)
         alpha_sum = 0.0
@@ -198,12 +220,23 @@ class DICRL:
             alpha_sum += a
             if k == self.K - 1:
                 break
-            grads = torch.stack([
-                dual_gradient(self.solve(eta[i], cost_weights), st, self.fr, self.fc,
-                              cost_weights)
-                for i, st in enumerate(self.stats)])
-            eta = self.comm.mix(eta, self.inner_schedule(k), "eta") - a * self.m[:, None] * grads
+            grads = self._scaled_gradients(eta, cost_weights)
+            eta = self.comm.mix(eta, self.inner_schedule(k), "eta") - a * grads
         return acc / alpha_sum, eta
+
+    def _inner_gradient_tracking(self, cost_weights, eta0):
+        eta = eta0.clone()
+        g = self._scaled_gradients(eta, cost_weights)
+        s = g
+        for k in range(self.K - 1):
+            W = self.inner_schedule(k)
+            eta = self.comm.mix(eta, W, "eta") - self.inner_step * s
+            if k == self.K - 2:
+                break
+            g_new = self._scaled_gradients(eta, cost_weights)
+            s = self.comm.mix(s, W, "inner_tracker") + g_new - g
+            g = g_new
+        return eta, eta
 
     def _inner_groups(self, cost_all: torch.Tensor, previous: list[list[int]]) -> list[list[int]]:
         """Learners whose inner processes are bit-identical computations: equal ω_c and
@@ -320,6 +353,7 @@ class DICRL:
         """Shapes and settings a checkpoint must match."""
         return (f"NL={self.n_learners} local={self.local} d={self.fc.dim} lr={self.fr.dim} "
                 f"K={self.K} steps={self.steps} rho={self.rho} prune={self.prune_accrued} "
+                f"inner={self.inner_method}:{self.inner_step} "
                 f"m={self.m.tolist()} T={self.model.horizon} S1={self.model.n_cells} "
                 f"N={self.model.n_experts}")
 

@@ -16,8 +16,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-# What may leave a learner: η = [ω_r, λ], ω_c and the gradient tracker (Algorithm 1).
-ALLOWED_FIELDS = ("eta", "cost_weights", "tracker")
+# What may leave a learner: η = [ω_r, λ], ω_c and the gradient trackers (Algorithm 1's,
+# and the optional gradient-tracking inner variant's).
+ALLOWED_FIELDS = ("eta", "cost_weights", "tracker", "inner_tracker")
 
 
 @dataclass
