@@ -281,9 +281,9 @@ def render_grid(
 ) -> np.ndarray:
     """Draw the grid world and return it as an ``H x W x 3`` uint8 image.
 
-    Obstacles are dark, each expert's start is a circle and its goal a star in the
-    expert's colour. Uses a private Agg canvas, never pyplot's global state, so it is
-    safe in headless and threaded code.
+    Obstacles are dark (hatched over a heat map); each expert's start is a circle and
+    its goal a star in the expert's colour. Uses a private Agg canvas, never pyplot's
+    global state, so it is safe in headless and threaded code.
 
     Args:
         layout: the grid to draw.
@@ -310,7 +310,10 @@ def render_grid(
                        extent=(-0.5, G - 0.5, G - 0.5, -0.5), interpolation="nearest")
         fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
     for x, y in layout.obstacles:
-        ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, color="0.2", zorder=2))
+        # Over a heat map obstacles are hatched, not filled, so their values stay visible.
+        style = ({"fill": False, "hatch": "///", "ec": "0.15", "lw": 0} if heat is not None
+                 else {"color": "0.2"})
+        ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, zorder=2, **style))
     for i, ((sx, sy), (gx, gy)) in enumerate(zip(layout.starts, layout.goals, strict=True)):
         c = EXPERT_COLOURS[i % len(EXPERT_COLOURS)]
         ax.plot(sx, sy, "o", ms=14, mfc="none", mec=c, mew=2, zorder=3)
