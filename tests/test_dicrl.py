@@ -171,3 +171,23 @@ def test_gradient_tracking_inner_variant_converges_faster(setup):
     assert tracking < 0.5 * paper  # measured: 10.7 vs 42.3 at K = 20
     with pytest.raises(ValueError, match="inner_method"):
         make(setup, inner_method="newton")
+
+
+def test_inner_scalars_are_logged_per_learner(setup):
+    class Recorder:
+        def __init__(self):
+            self.rows = []
+
+        def scalar(self, run, tag, value, step):
+            self.rows.append((run, tag, step))
+
+    rec = Recorder()
+    t = make(setup, logger=rec)
+    t.train(2)
+    runs = {r for r, _, _ in rec.rows}
+    assert runs == {"learner0", "learner1", "learner2"}
+    tags = {tag for _, tag, _ in rec.rows}
+    assert tags == {"inner/dual_gradient_norm", "inner/multiplier", "inner/reward_weight_norm"}
+    # each learner logs its own inner process once per inner gradient: K-1 per outer step
+    steps = sorted(s for r, tag, s in rec.rows if r == "learner0" and "dual" in tag)
+    assert steps == [0, 1, 3, 4]

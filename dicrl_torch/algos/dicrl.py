@@ -119,6 +119,8 @@ class DICRL:
             are the same either way; tested).
         inner_method: ``"paper"`` (Algorithm 2) or ``"gradient_tracking"`` (constant
             ``inner_step``, see the module docstring).
+        logger: receives ``inner/`` scalars of each learner's own inner process (step =
+            outer iteration · K + k); ``run_name(v)`` names learner v's run.
         init_cost_weights: ``[N_L, d]`` or a scalar; init_reward_weights ``[l_r]`` or
             scalar; init_multiplier λ(0).
     """
@@ -133,7 +135,8 @@ class DICRL:
                  init_reward_weights: float | torch.Tensor = 0.0,
                  init_multiplier: float = -1.0, progress: bool = False,
                  merge_identical_inner: bool = True, inner_method: str = "paper",
-                 inner_step: float = 0.01) -> None:
+                 inner_step: float = 0.01, logger=None,
+                 run_name: Callable[[int], str] = lambda v: f"learner{v}") -> None:
         self.comm = communicator
         N_L = communicator.n_learners
         local = communicator.local_ids
@@ -157,6 +160,8 @@ class DICRL:
         if not (inner_step > 0 and math.isfinite(inner_step)):
             raise ValueError(f"inner_step must be a positive number, got {inner_step}.")
         self.inner_method, self.inner_step = inner_method, float(inner_step)
+        self.logger, self.run_name = logger, run_name
+        self._log_rows: list[int] = []  # local learners whose own inner process runs now
         if inner_steps < 2:
             raise ValueError(f"inner_steps (K) must be >= 2, got {inner_steps}.")
         if not lsca_curvature > 0:
@@ -199,11 +204,21 @@ class DICRL:
         return self.solver.solve(reward)
 
     # ------------------------------------------------------------------ inner process
-    def _scaled_gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor) -> torch.Tensor:
+    def _scaled_gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor,
+                          k: int) -> torch.Tensor:
         """``m^[v] ∇G^[v](η^[v]; ω_c)`` of every local learner: ``[n, p]``."""
-        return self.m[:, None] * torch.stack([
+        grads = torch.stack([
             dual_gradient(self.solve(eta[i], cost_weights), st, self.fr, self.fc, cost_weights)
             for i, st in enumerate(self.stats)])
+        if self.logger is not None:
+            step = self.state.outer_iteration * self.K + k
+            for i in self._log_rows:
+                run = self.run_name(self.local[i])
+                self.logger.scalar(run, "inner/dual_gradient_norm", float(grads[i].norm()), step)
+                self.logger.scalar(run, "inner/multiplier", float(eta[i, -1]), step)
+                self.logger.scalar(run, "inner/reward_weight_norm", float(eta[i, :-1].norm()),
+                                   step)
+        return self.m[:, None] * grads
 
     def inner_process(self, cost_weights: torch.Tensor, eta0: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -220,20 +235,20 @@ class DICRL:
             alpha_sum += a
             if k == self.K - 1:
                 break
-            grads = self._scaled_gradients(eta, cost_weights)
+            grads = self._scaled_gradients(eta, cost_weights, k)
             eta = self.comm.mix(eta, self.inner_schedule(k), "eta") - a * grads
         return acc / alpha_sum, eta
 
     def _inner_gradient_tracking(self, cost_weights, eta0):
         eta = eta0.clone()
-        g = self._scaled_gradients(eta, cost_weights)
+        g = self._scaled_gradients(eta, cost_weights, 0)
         s = g
         for k in range(self.K - 1):
             W = self.inner_schedule(k)
             eta = self.comm.mix(eta, W, "eta") - self.inner_step * s
             if k == self.K - 2:
                 break
-            g_new = self._scaled_gradients(eta, cost_weights)
+            g_new = self._scaled_gradients(eta, cost_weights, k + 1)
             s = self.comm.mix(s, W, "inner_tracker") + g_new - g
             g = g_new
         return eta, eta
@@ -266,6 +281,7 @@ class DICRL:
         new_eta = torch.empty_like(st.eta)
         eta_bar_own = torch.empty_like(st.eta_bar)
         for g in groups:
+            self._log_rows = [i for i, v in enumerate(self.local) if v in g]
             bar, last = self.inner_process(cost_all[g[0]], st.eta[g[0]])
             for u in g:
                 new_eta[u] = last
