@@ -1,28 +1,58 @@
 """Train D-ICRL (and C-ICRL) on the grid world and report the paper's table.
 
     python experiments/train.py experiment=quick [seed=1] [graph=ring] [features/cost=per_expert]
+    python experiments/train.py comm=distributed       # one process per learner (spawned here)
+    torchrun --standalone --nproc_per_node N_L experiments/train.py comm=distributed
 
 Writes into the Hydra run directory: ``results.json`` (DESIGN §8), TensorBoard runs
 (``tb/learner<v>``, ``tb/c_icrl``, ``tb/network``), learned-constraint maps (PNG) and
 the demonstrations; prints the results table. This is one of the only places that
 read a config: everything below is built here and handed to the library.
+
+With ``comm=distributed`` learner ``v`` is process ``v`` (its rank): started here with
+``spawn_learners`` or by ``torchrun`` (``N_L = len(split)`` processes). Every process
+rebuilds the experts and demonstrations from the seed, keeps only its own shard, trains
+with checkpoints in ``checkpoint_rank<v>.pt``, and writes its evaluated row to
+``learner_rows/rank<v>.json`` (all processes need the same run directory: a shared file
+system across machines). Rank 0 (torchrun) or the launching process (spawned) then runs
+C-ICRL and the expert rows and merges everything into ``results.json``. The numbers are
+bit for bit those of the default all-in-one-process ``comm=simulated``.
 """
 
 from __future__ import annotations
 
+import copy
 import json
 import os
+import shutil
+import sys
+import threading
 import time
+import traceback
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import hydra
 import numpy as np
 import torch
+import torch.distributed as dist
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import instantiate
+from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dicrl_torch.algos.dicrl import DICRL
+from dicrl_torch.comm import SimulatedCommunicator
+from dicrl_torch.comm.distributed import (
+    ConfigMismatchError,
+    DistributedCommunicator,
+    LearnerProcessError,
+    PeerFailureError,
+    shard_for_rank,
+    spawn_learners,
+)
 from dicrl_torch.demos import partition_demonstrations, save_demonstrations
 from dicrl_torch.demos.experts import expert_solution, sample_trajectories
 from dicrl_torch.demos.storage import Demonstrations
@@ -35,27 +65,111 @@ from dicrl_torch.metrics import (
     rollout_true_cmg,
 )
 
+RunOf = Callable[[int], str]  # learner id -> TensorBoard run name
+
 
 def build(cfg, **objects):
     """Instantiate ``cfg`` with built objects as keyword arguments."""
     return instantiate(cfg, _partial_=True)(**objects)
 
 
+# ---------------------------------------------------------------------- the problem
+@dataclass
+class Problem:
+    """What every process rebuilds identically from the config and its seed."""
+
+    layout: Any
+    model: Any
+    solver: Any
+    reward_basis: Any
+    cost_basis: Any
+    experts: Any
+    nominal: Any
+    demos: Demonstrations
+    shards: list[Demonstrations]
+    ctx: dict  # what evaluate() needs
+
+
+def build_problem(cfg) -> Problem:
+    layout = instantiate(cfg.env.layout)
+    model = build(cfg.env.model, layout=layout)
+    solver = build(cfg.solver, model=model)
+    reward_basis = build(cfg.features.reward, model=model)
+    cost_basis = build(cfg.features.cost, model=model)
+    w_true = reward_basis.true_weights(tuple(cfg.env.true_reward_weights))
+    split = list(cfg.split)
+    if sum(split) != cfg.n_demonstrations:
+        raise ValueError(f"split {split} sums to {sum(split)}, not n_demonstrations="
+                         f"{cfg.n_demonstrations}; make them agree.")
+    # Experts: the demonstrations and the two reference rows.
+    exp_solver = build(cfg.solver, model=model, dtype=torch.float64) \
+        if model.n_pairs < 5_000_000 else solver
+    experts = expert_solution(solver=exp_solver, reward_features=reward_basis(),
+                              reward_weights=w_true, temperature=cfg.expert_temperature)
+    nominal = expert_solution(solver=exp_solver, reward_features=reward_basis(),
+                              reward_weights=w_true, constrained=False,
+                              temperature=cfg.expert_temperature)
+    demos = sample_trajectories(experts, cfg.n_demonstrations,
+                                np.random.default_rng(cfg.seed))
+    ctx = {"model": model, "layout": layout, "episodes": cfg.eval_episodes,
+           "reward_table": reward_basis().weighted(w_true).local[:, :, 0],
+           "seed": cfg.seed, "w_true": w_true, "true": cost_basis.true_constraints().numpy()}
+    return Problem(layout=layout, model=model, solver=solver, reward_basis=reward_basis,
+                   cost_basis=cost_basis, experts=experts, nominal=nominal, demos=demos,
+                   shards=partition_demonstrations(demos, split), ctx=ctx)
+
+
+def announce(cfg, p: Problem, out: Path) -> None:
+    """Printed (and the demonstrations saved) once per run, by the main process."""
+    split = list(cfg.split)
+    save_demonstrations(out / "demos.npz", p.demos)
+    print(f"{p.layout.n_experts} experts, {len(split)} learners holding {split} demonstrations;"
+          f" {p.model.n_pairs:,} state-action pairs")
+
+
+def make_trainer(cfg, p: Problem, shards: list[Demonstrations], communicator,
+                 trajectory_counts: list[int], progress: bool = True) -> DICRL:
+    """The trainer of the learners ``communicator.local_ids`` (holding ``shards``)."""
+    a = cfg.algo
+    n_learners = communicator.n_learners
+    graph = {k: build(cfg.graph[k], n_learners=n_learners) for k in ("inner", "outer")}
+    # Consensus averages the learners' steps α m^[v] ∇G^[v] into α (m / N_L) ∇G; one
+    # learner with all m trajectories takes the same step on G with α / N_L.
+    steps = instantiate(a.steps)
+    scale = n_learners / len(cfg.split)
+    steps = type(steps)(alpha_bar=steps.alpha_bar * scale, beta_bar=steps.beta_bar,
+                        beta_power=steps.beta_power)
+    return DICRL(
+        solver=p.solver, reward_basis=p.reward_basis, cost_basis=p.cost_basis, shards=shards,
+        trajectory_counts=trajectory_counts, communicator=communicator,
+        inner_schedule=graph["inner"], outer_schedule=graph["outer"],
+        steps=steps, inner_steps=a.inner_steps,
+        lsca_curvature=a.lsca_curvature, prune_accrued=a.prune_accrued,
+        init_cost_weights=a.init_cost_weights, init_reward_weights=a.init_reward_weights,
+        init_multiplier=a.init_multiplier, inner_method=a.inner_method,
+        inner_step=a.inner_step * scale, progress=progress)
+
+
+# ---------------------------------------------------------------------- evaluation
 def evaluate(policy, ctx) -> dict:
+    # Every row is rolled out with the same random numbers (a generator seeded from the
+    # config): a row depends neither on the process that evaluates it nor on the rows
+    # evaluated before it, and all methods are compared on common random numbers.
     ev = rollout_true_cmg(policy=policy, model=ctx["model"], layout=ctx["layout"],
                           reward_table=ctx["reward_table"], n_episodes=ctx["episodes"],
-                          rng=ctx["rng"])
+                          rng=torch.Generator().manual_seed(ctx["seed"]))
     return {"CR_mean": ev.cr_mean, "CR_std": ev.cr_std, "CVR": ev.cvr}
 
 
 def learner_row(trainer: DICRL, i: int, ctx, threshold: float,
-                prune_min_gain: float | None) -> dict:
+                prune_min_gain: float | None, progress: bool = True) -> dict:
+    """The table row of local learner ``i`` (prunes its constraints first, if asked)."""
     raw = learned_constraints(trainer.state.cost_weights[i], threshold)
     extra = {"FPR_before_pruning": false_positive_rate(raw, ctx["true"]),
              "FNR_before_pruning": false_negative_rate(raw, ctx["true"])}
     if prune_min_gain is not None:
         # Pruned constraints change the likelihood by < min_gain: the policy is the same.
-        cw, pruned = trainer.prune_constraints(i, threshold, prune_min_gain, progress=True)
+        cw, pruned = trainer.prune_constraints(i, threshold, prune_min_gain, progress=progress)
         trainer.state.cost_weights[i] = cw
         extra["pruned"] = len(pruned)
     learned = learned_constraints(trainer.state.cost_weights[i], threshold)
@@ -80,6 +194,25 @@ def constraint_map(layout, cost_basis, cost_weights, threshold, title):
     return render_grid(layout, heat=heat, constraint_cells=cells, title=title)
 
 
+def evaluate_learners(name: str, trainer: DICRL, p: Problem, cfg, logger, run_of: RunOf,
+                      out: Path, progress: bool = True) -> list[dict]:
+    """Rows, constraint maps and final TensorBoard values of the trainer's local learners."""
+    import matplotlib.image
+
+    a = cfg.algo
+    rows = []
+    for i, v in enumerate(trainer.local):
+        row = learner_row(trainer, i, p.ctx, a.threshold, a.prune_min_gain, progress)
+        img = constraint_map(p.layout, p.cost_basis, trainer.state.cost_weights[i], a.threshold,
+                             f"{name} learner {v + 1}: learned cell constraints (x)")
+        logger.image(run_of(v), "eval/constraint_map", img, a.outer_iterations)
+        matplotlib.image.imsave(out / f"constraints_{name}_{v + 1}.png", img)
+        logger.scalar(run_of(v), "eval/CR", row["CR_mean"], a.outer_iterations)
+        logger.scalar(run_of(v), "eval/CVR", row["CVR"], a.outer_iterations)
+        rows.append(row)
+    return rows
+
+
 def print_table(methods: dict) -> None:
     head = f"{'':26s}{'D':>3s}{'NATR':>6s}{'CR':>20s}{'FPR':>7s}{'FNR':>7s}{'CVR':>8s}{'RFD':>8s}"
     print(head)
@@ -93,152 +226,350 @@ def print_table(methods: dict) -> None:
                   f"{r['CVR']:8.3f}{fmt(r['RFD'], '.3f'):>8s}")
 
 
-@hydra.main(config_path="../configs", config_name="train", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    t_start = time.perf_counter()
-    out = Path(HydraConfig.get().runtime.output_dir)
-    torch.set_num_threads(int(os.environ.get("DICRL_THREADS", torch.get_num_threads())))
-    layout = instantiate(cfg.env.layout)
-    model = build(cfg.env.model, layout=layout)
-    solver = build(cfg.solver, model=model)
-    reward_basis = build(cfg.features.reward, model=model)
-    cost_basis = build(cfg.features.cost, model=model)
-    logger = instantiate(cfg.logger, **({"root": out / "tb"} if "TensorBoard" in
-                                        cfg.logger._target_ else {}))
-    w_true = reward_basis.true_weights(tuple(cfg.env.true_reward_weights))
-    rng = np.random.default_rng(cfg.seed)
-    split = list(cfg.split)
-    if sum(split) != cfg.n_demonstrations:
-        raise ValueError(f"split {split} sums to {sum(split)}, not n_demonstrations="
-                         f"{cfg.n_demonstrations}; make them agree.")
-    print(f"{layout.n_experts} experts, {len(split)} learners holding {split} demonstrations;"
-          f" {model.n_pairs:,} state-action pairs")
+# ---------------------------------------------------------------------- training
+class Checkpoints:
+    """Trainer states by name in one file, written atomically (to a temporary file, then
+    renamed: a crash leaves the previous checkpoint intact).
 
-    # Experts: the demonstrations and the two reference rows.
-    exp_solver = build(cfg.solver, model=model, dtype=torch.float64) \
-        if model.n_pairs < 5_000_000 else solver
-    experts = expert_solution(solver=exp_solver, reward_features=reward_basis(),
-                              reward_weights=w_true, temperature=cfg.expert_temperature)
-    nominal = expert_solution(solver=exp_solver, reward_features=reward_basis(),
-                              reward_weights=w_true, constrained=False,
-                              temperature=cfg.expert_temperature)
-    demos = sample_trajectories(experts, cfg.n_demonstrations, rng)
-    save_demonstrations(out / "demos.npz", demos)
-    shards = partition_demonstrations(demos, split)
-    ctx = {"model": model, "layout": layout, "episodes": cfg.eval_episodes,
-           "reward_table": reward_basis().weighted(w_true).local[:, :, 0],
-           "rng": torch.Generator().manual_seed(cfg.seed), "w_true": w_true,
-           "true": cost_basis.true_constraints().numpy()}
+    Args:
+        path: the checkpoint file.
+        resume: load ``path`` if it exists.
+        keep_previous: also keep each name's previous save (``<name>:previous``), so that
+            learner processes whose last saves are one save apart can agree on a state.
+        crash_tags: extra names for the ``DICRL_CRASH_AFTER=<name>:<n>`` fault injection
+            (tests): the process kills itself with SIGKILL right after saving ``n``.
+    """
 
-    a = cfg.algo
+    def __init__(self, path: Path, resume: bool, *, keep_previous: bool = False,
+                 crash_tags: tuple[str, ...] = ()) -> None:
+        self.path, self.keep_previous, self.crash_tags = path, keep_previous, crash_tags
+        self.saved: dict = {}
+        if resume and path.exists():
+            # weights_only: tensors and plain containers, never arbitrary pickled objects
+            self.saved = torch.load(path, weights_only=True)
+            done = {k: v["outer_iteration"] for k, v in self.saved.items()
+                    if not k.endswith(":previous")}
+            print(f"resuming from {path} (outer iterations done: {done})")
+        elif resume:
+            print(f"resume=true but no checkpoint {path.name} in {path.parent}; starting "
+                  f"from scratch")
 
-    def make_trainer(shards_: list[Demonstrations], n_learners: int) -> DICRL:
-        graph = {k: build(cfg.graph[k], n_learners=n_learners) for k in ("inner", "outer")}
-        # Consensus averages the learners' steps α m^[v] ∇G^[v] into α (m / N_L) ∇G; one
-        # learner with all m trajectories takes the same step on G with α / N_L.
-        steps = instantiate(a.steps)
-        scale = n_learners / len(split)
-        steps = type(steps)(alpha_bar=steps.alpha_bar * scale, beta_bar=steps.beta_bar,
-                            beta_power=steps.beta_power)
-        return DICRL(
-            solver=solver, reward_basis=reward_basis, cost_basis=cost_basis, shards=shards_,
-            trajectory_counts=[s.n_trajectories for s in shards_],
-            communicator=build(cfg.comm, n_learners=n_learners),
-            inner_schedule=graph["inner"], outer_schedule=graph["outer"],
-            steps=steps, inner_steps=a.inner_steps,
-            lsca_curvature=a.lsca_curvature, prune_accrued=a.prune_accrued,
-            init_cost_weights=a.init_cost_weights, init_reward_weights=a.init_reward_weights,
-            init_multiplier=a.init_multiplier, inner_method=a.inner_method,
-            inner_step=a.inner_step * scale, progress=True)
+    def states(self, name: str) -> list[dict]:
+        """The saved states of ``name``, newest first."""
+        return [self.saved[k] for k in (name, f"{name}:previous") if k in self.saved]
 
-    def log_outer(run_of, trainer: DICRL, info: dict) -> None:
-        n = info["outer_iteration"]
-        for i in range(len(trainer.local)):
-            run = run_of(i)
-            learned = learned_constraints(trainer.state.cost_weights[i], a.threshold)
-            logger.scalar(run, "outer/multiplier", info["multiplier"][i], n)
-            logger.scalar(run, "outer/lga_norm", info["lga_norm"][i], n)
-            logger.scalar(run, "eval/FPR", false_positive_rate(learned, ctx["true"]), n)
-            logger.scalar(run, "eval/FNR", false_negative_rate(learned, ctx["true"]), n)
-            logger.scalar(run, "eval/RFD", reward_function_distance(
-                trainer.state.eta_bar[i, :-1], w_true), n)
-        logger.scalar("network", "consensus/max_pairwise_cost_distance",
-                      trainer.disagreement(), n)
-
-    ckpt_path = out / "checkpoint.pt"
-    saved: dict = {}
-    if cfg.resume and ckpt_path.exists():
-        # weights_only: tensors and plain containers, never arbitrary pickled objects
-        saved = torch.load(ckpt_path, weights_only=True)
-        done = {k: v["outer_iteration"] for k, v in saved.items()}
-        print(f"resuming from {ckpt_path} (outer iterations done: {done})")
-    elif cfg.resume:
-        print(f"resume=true but no checkpoint in {out}; starting from scratch")
-
-    def checkpoint(name: str, trainer: DICRL) -> None:
-        saved[name] = trainer.state_dict()
-        tmp = ckpt_path.with_suffix(".tmp")
-        torch.save(saved, tmp)
-        tmp.replace(ckpt_path)  # atomic: a crash leaves the previous checkpoint intact
+    def save(self, name: str, trainer: DICRL) -> None:
+        n = trainer.state.outer_iteration
+        last = self.saved.get(name)
+        if self.keep_previous and last is not None and last["outer_iteration"] != n:
+            self.saved[f"{name}:previous"] = last
+        # A copy: the trainer goes on changing its history list and, when pruning, ω_c in
+        # place, and this state may be written again (with another name's save).
+        self.saved[name] = copy.deepcopy(trainer.state_dict())
+        tmp = self.path.with_suffix(".tmp")
+        torch.save(self.saved, tmp)
+        tmp.replace(self.path)  # atomic: a crash leaves the previous checkpoint intact
         crash = os.environ.get("DICRL_CRASH_AFTER")  # fault injection for tests
-        if crash == f"{name}:{trainer.state.outer_iteration}":
+        if crash in {f"{tag}:{n}" for tag in (name, *self.crash_tags)}:
             os.kill(os.getpid(), 9)
 
-    methods: dict = {}
-    runs = [("D-ICRL", shards, len(shards), lambda i: f"learner{i}")]
+
+def log_outer(logger, run_of: RunOf, trainer: DICRL, info: dict, ctx, threshold: float,
+              log_network: bool) -> None:
+    n = info["outer_iteration"]
+    for i, v in enumerate(trainer.local):
+        run = run_of(v)
+        learned = learned_constraints(trainer.state.cost_weights[i], threshold)
+        logger.scalar(run, "outer/multiplier", info["multiplier"][i], n)
+        logger.scalar(run, "outer/lga_norm", info["lga_norm"][i], n)
+        logger.scalar(run, "eval/FPR", false_positive_rate(learned, ctx["true"]), n)
+        logger.scalar(run, "eval/FNR", false_negative_rate(learned, ctx["true"]), n)
+        logger.scalar(run, "eval/RFD", reward_function_distance(
+            trainer.state.eta_bar[i, :-1], ctx["w_true"]), n)
+    if trainer.n_learners > 1:
+        gap = trainer.disagreement()  # gathers every ω_c: each learner process takes part
+        if log_network:
+            logger.scalar("network", "consensus/max_pairwise_cost_distance", gap, n)
+
+
+def train(name: str, trainer: DICRL, ckpt: Checkpoints, logger, run_of: RunOf, cfg,
+          ctx, log_network: bool) -> None:
+    """Train to ``algo.outer_iterations`` with TensorBoard values and checkpoints."""
+    a = cfg.algo
+
+    def after_outer(t: DICRL, info: dict) -> None:
+        log_outer(logger, run_of, t, info, ctx, a.threshold, log_network)
+        if t.state.outer_iteration % cfg.checkpoint_every == 0:
+            ckpt.save(name, t)
+
+    trainer.train(a.outer_iterations, callback=after_outer)
+    ckpt.save(name, trainer)
+
+
+def make_logger(cfg, out: Path):
+    return instantiate(cfg.logger, **({"root": out / "tb"} if "TensorBoard" in
+                                      cfg.logger._target_ else {}))
+
+
+def write_json(path: Path, obj) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1))
+    tmp.replace(path)  # atomic: a crash never leaves half a file
+
+
+def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
+           t_start: float, c_icrl_comm) -> None:
+    """C-ICRL and the expert rows (in this process), then ``results.json`` and the table.
+
+    ``d_icrl``: the D-ICRL ``learners`` rows, ``history`` and final ``disagreement``.
+    """
+    a = cfg.algo
+    split = list(cfg.split)
+    methods: dict = {"D-ICRL": {"D": "✓" if len(split) > 1 else "×", "NATR": "✓",
+                                "learners": d_icrl["learners"]}}
+    histories = {"D-ICRL": d_icrl["history"]}
     if a.run_c_icrl:
-        pooled = Demonstrations(states=demos.states, actions=demos.actions,
-                                n_cells=demos.n_cells, n_actions=demos.n_actions)
-        runs.append(("C-ICRL", [pooled], 1, lambda i: "c_icrl"))
-    trainers = {}
-    for name, shards_, n_l, run_of in runs:
-        trainer = make_trainer(shards_, n_l)
-        if name in saved:
-            trainer.load_state_dict(saved[name])
-
-        def after_outer(t, info, r=run_of, name=name):
-            log_outer(r, t, info)
-            if t.state.outer_iteration % cfg.checkpoint_every == 0:
-                checkpoint(name, t)
-
-        trainer.train(a.outer_iterations, callback=after_outer)
-        checkpoint(name, trainer)
-        trainers[name] = trainer
-        rows = [learner_row(trainer, i, ctx, a.threshold, a.prune_min_gain)
-                for i in range(n_l)]
-        methods[name] = {"D": "✓" if n_l > 1 else "×", "NATR": "✓", "learners": rows}
-        for i in range(n_l):
-            img = constraint_map(layout, cost_basis, trainer.state.cost_weights[i], a.threshold,
-                                 f"{name} learner {i + 1}: learned cell constraints (x)")
-            logger.image(run_of(i), "eval/constraint_map", img, a.outer_iterations)
-            import matplotlib.image
-
-            matplotlib.image.imsave(out / f"constraints_{name}_{i + 1}.png", img)
-            logger.scalar(run_of(i), "eval/CR", rows[i]["CR_mean"], a.outer_iterations)
-            logger.scalar(run_of(i), "eval/CVR", rows[i]["CVR"], a.outer_iterations)
-    for name, sol in (("Experts (ground truth)", experts), ("Experts (nominal)", nominal)):
-        row = evaluate(sol.policy_at, ctx)
+        d = p.demos
+        pooled = Demonstrations(states=d.states, actions=d.actions, n_cells=d.n_cells,
+                                n_actions=d.n_actions)
+        c = make_trainer(cfg, p, [pooled], c_icrl_comm, [pooled.n_trajectories])
+        if states := ckpt.states("C-ICRL"):
+            c.load_state_dict(states[0])
+        train("C-ICRL", c, ckpt, logger, lambda v: "c_icrl", cfg, p.ctx, log_network=False)
+        methods["C-ICRL"] = {"D": "×", "NATR": "✓", "learners": evaluate_learners(
+            "C-ICRL", c, p, cfg, logger, lambda v: "c_icrl", out)}
+        histories["C-ICRL"] = c.history
+    for name, sol in (("Experts (ground truth)", p.experts), ("Experts (nominal)", p.nominal)):
+        row = evaluate(sol.policy_at, p.ctx)
         row.update(FPR=None, FNR=None, RFD=0.0, SR=None)
         methods[name] = {"learners": [row]}
     logger.close()
 
-    d = trainers["D-ICRL"]
     results = {
         "experiment": cfg.name, "wall_s": time.perf_counter() - t_start,
         "methods": {k: {"learners": v["learners"]} for k, v in methods.items()},
-        "consensus_max_pairwise_cost_distance": d.disagreement(),
-        "history": {k: [{**h, "seconds": None} for h in t.history]  # timings vary run to run
-                    for k, t in trainers.items()},
+        "consensus_max_pairwise_cost_distance": d_icrl["disagreement"],
+        "history": {k: [{**h, "seconds": None} for h in hist]  # timings vary run to run
+                    for k, hist in histories.items()},
         "config": OmegaConf.to_container(cfg, resolve=True),
     }
-    tmp = out / "results.json.tmp"
-    tmp.write_text(json.dumps(results, indent=1))
-    tmp.replace(out / "results.json")  # atomic: a crash never leaves half a file
+    write_json(out / "results.json", results)
     print()
     print_table(methods)
     print(f"\nwall time {results['wall_s']:.0f} s; consensus max ‖ω_c − ω_c'‖ = "
           f"{results['consensus_max_pairwise_cost_distance']:.1e}")
     print(f"results, TensorBoard runs (tb/) and figures in {out.resolve()}")
+
+
+# ---------------------------------------------------------------------- all in one process
+def run_simulated(cfg, out: Path, t_start: float) -> None:
+    p = build_problem(cfg)
+    announce(cfg, p, out)
+    split = list(cfg.split)
+    logger = make_logger(cfg, out)
+    ckpt = Checkpoints(out / "checkpoint.pt", cfg.resume)
+    trainer = make_trainer(cfg, p, p.shards, build(cfg.comm, n_learners=len(split)), split)
+    if states := ckpt.states("D-ICRL"):
+        trainer.load_state_dict(states[0])
+    run_of = lambda v: f"learner{v}"  # noqa: E731
+    train("D-ICRL", trainer, ckpt, logger, run_of, cfg, p.ctx, log_network=True)
+    rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out)
+    d_icrl = {"learners": rows, "history": trainer.history,
+              "disagreement": trainer.disagreement()}
+    finish(cfg, out, p, d_icrl, logger, ckpt, t_start, build(cfg.comm, n_learners=1))
+
+
+# ---------------------------------------------------------------------- one process per learner
+def gather_objects(comm: DistributedCommunicator, obj) -> list:
+    """Every process's ``obj``, in rank order: small control values (the run directory,
+    checkpoint iterations), never learner data."""
+    objs: list = [None] * comm.n_learners
+    try:
+        dist.all_gather_object(objs, obj)
+    except Exception as e:
+        raise PeerFailureError(
+            f"Learner {comm.rank} of {comm.n_learners}: exchanging control values failed "
+            f"({type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else e})."
+            f" A learner process died or never joined; check its log.") from e
+    return objs
+
+
+def resume_learner(comm: DistributedCommunicator, ckpt: Checkpoints, trainer: DICRL) -> None:
+    """Load the newest checkpointed outer iteration that every learner has.
+
+    A learner that dies between the last exchange of an outer iteration and its
+    checkpoint is one save behind the others; they then use their previous save.
+    """
+    have = {int(sd["outer_iteration"]): sd for sd in ckpt.states("D-ICRL")}
+    every = gather_objects(comm, sorted(have))
+    start = min(max(h, default=0) for h in every)
+    if start == 0:
+        if any(every) and comm.rank == 0:
+            print(f"learners {[r for r, h in enumerate(every) if not h]} have no checkpoint; "
+                  f"every learner starts from scratch")
+        return
+    lacking = [r for r, h in enumerate(every) if start not in h]
+    if lacking:
+        raise ValueError(
+            f"The learners' checkpoints share no outer iteration (saved: "
+            f"{dict(enumerate(every))}); learners {lacking} have none at {start}. Delete "
+            f"checkpoint_rank*.pt in the run directory to start over.")
+    trainer.load_state_dict(have[start])
+    if comm.rank == 0:
+        print(f"D-ICRL learners continue after outer iteration {start}")
+
+
+def run_learner(comm: DistributedCommunicator, cfg, out: Path, p: Problem,
+                run_id: str) -> None:
+    """Learner ``comm.rank``: train on its own shard, evaluate its row, write it to
+    ``learner_rows/rank<r>.json`` and wait for the others."""
+    rank, split = comm.rank, list(cfg.split)
+    shard = shard_for_rank(p.shards, rank, world_size=comm.n_learners)
+    trainer = make_trainer(cfg, p, [shard], comm, split, progress=rank == 0)
+    ckpt = Checkpoints(out / f"checkpoint_rank{rank}.pt", cfg.resume, keep_previous=True,
+                       crash_tags=(f"D-ICRL@rank{rank}",))
+    resume_learner(comm, ckpt, trainer)
+    logger = make_logger(cfg, out)
+    run_of = lambda v: f"learner{v}"  # noqa: E731
+    train("D-ICRL", trainer, ckpt, logger, run_of, cfg, p.ctx, log_network=rank == 0)
+    rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out,
+                             progress=rank == 0)
+    gap = trainer.disagreement()  # of the pruned ω_c, as in the simulated run
+    logger.close()
+    write_json(out / "learner_rows" / f"rank{rank}.json", {
+        "run_id": run_id, "rank": rank, "world_size": comm.n_learners, "row": rows[0],
+        "history": [{**h, "seconds": None} for h in trainer.history], "disagreement": gap})
+    comm.barrier()
+
+
+def merge_learner_rows(out: Path, n_learners: int, run_id: str) -> dict:
+    """The D-ICRL rows, history and disagreement of :func:`run_learner`'s files."""
+    parts = []
+    for r in range(n_learners):
+        path = out / "learner_rows" / f"rank{r}.json"
+        part = json.loads(path.read_text()) if path.exists() else None
+        if part is None or part["run_id"] != run_id:
+            why = "is missing" if part is None else "is from another run"
+            raise FileNotFoundError(
+                f"{path} {why}. Every learner writes its row into the run directory: "
+                f"give all processes the same one (multi-node runs: hydra.run.dir on a "
+                f"shared file system).")
+        parts.append(part)
+    # One history entry per outer iteration; per-learner lists are concatenated in rank
+    # order (learner id == rank), the rest (iteration, inner processes) is global.
+    history = [{k: [x for part in parts for x in part["history"][j][k]]
+                if isinstance(v, list) else v for k, v in entry.items()}
+               for j, entry in enumerate(parts[0]["history"])]
+    return {"learners": [part["row"] for part in parts], "history": history,
+            "disagreement": parts[0]["disagreement"]}
+
+
+def spawned_learner(rank: int, world_size: int, init_method: str, cfg_yaml: str,
+                    out_dir: str, run_id: str) -> None:
+    """Body of a learner process started by :func:`spawn_learners`."""
+    from tqdm import tqdm
+
+    # tqdm's default multiprocessing lock would be a named semaphore here (spawned
+    # process), which the process's final os._exit leaks; a thread lock suffices.
+    tqdm.set_lock(threading.RLock())
+    cfg = OmegaConf.create(cfg_yaml)
+    comm = build(cfg.comm, init_method=init_method, rank=rank, world_size=world_size)
+    comm.check_same_config(cfg_yaml)
+    run_learner(comm, cfg, Path(out_dir), build_problem(cfg), run_id)
+    comm.close()
+
+
+def run_spawned(cfg, out: Path, t_start: float) -> None:
+    """``python experiments/train.py comm=distributed``: one learner process per shard."""
+    split = list(cfg.split)
+    p = build_problem(cfg)
+    announce(cfg, p, out)
+    cfg_yaml = OmegaConf.to_yaml(cfg, resolve=True)
+    threads = int(os.environ.get("DICRL_THREADS", max(1, torch.get_num_threads() // len(split))))
+    run_id = uuid.uuid4().hex
+    print(f"starting {len(split)} learner processes ({threads} thread(s) each)", flush=True)
+    try:
+        # No overall time limit: every wait between learners is bounded by comm.timeout_s,
+        # and once one process fails the others are stopped after a grace period.
+        spawn_learners(spawned_learner, len(split), args=(cfg_yaml, str(out), run_id),
+                       timeout_s=float("inf"), num_threads=threads)
+    except LearnerProcessError as e:
+        first = e.tracebacks.get(e.first_failed) if e.first_failed is not None else None
+        if first:
+            print(first, file=sys.stderr)
+        print(f"error: {e}\n{resume_hint(out)}", file=sys.stderr, flush=True)
+        sys.exit(1)
+    finish(cfg, out, p, merge_learner_rows(out, len(split), run_id), make_logger(cfg, out),
+           Checkpoints(out / "checkpoint.pt", cfg.resume), t_start,
+           SimulatedCommunicator(n_learners=1))
+
+
+def resume_hint(out: Path) -> str:
+    return (f"The last checkpoints (checkpoint_rank<r>.pt) are in {out}; continue with the "
+            f"same overrides plus resume=true hydra.run.dir={out}")
+
+
+def agree_on_run_dir(comm: DistributedCommunicator, out: Path) -> tuple[Path, str]:
+    """Rank 0's run directory and a run id. Hydra names the default directory after the
+    second it started in, which can differ between the processes torchrun starts; the
+    others' (still empty) directories are removed."""
+    root, run_id = gather_objects(comm, (str(out.resolve()), uuid.uuid4().hex))[0]
+    root = Path(root)
+    if root != out.resolve():
+        if out.is_dir() and {q.name for q in out.iterdir()} <= {".hydra", "train.log"}:
+            shutil.rmtree(out, ignore_errors=True)
+        root.mkdir(parents=True, exist_ok=True)
+    return root, run_id
+
+
+def run_torchrun(cfg, out: Path, t_start: float) -> None:
+    """A process started by torchrun: learner ``RANK``; rank 0 also finishes the run."""
+    rank, world_size = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
+    split = list(cfg.split)
+    if world_size != len(split):
+        raise ValueError(
+            f"torchrun started WORLD_SIZE={world_size} processes but split={split} has "
+            f"{len(split)} learners (one process per learner); run torchrun with "
+            f"--nproc_per_node {len(split)} (times the nodes), or change split.")
+    try:
+        comm = build(cfg.comm, rank=rank, world_size=world_size)  # init_method env://
+        comm.check_same_config(OmegaConf.to_yaml(cfg, resolve=True))
+        out, run_id = agree_on_run_dir(comm, out)
+        p = build_problem(cfg)
+        if rank == 0:
+            announce(cfg, p, out)
+        run_learner(comm, cfg, out, p, run_id)
+        comm.close()
+    except Exception as e:
+        # Exit at once, without tearing down a process group with a dead peer (can hang).
+        if not isinstance(e, PeerFailureError | ConfigMismatchError):
+            traceback.print_exc()
+        print(f"error: learner {rank}: {type(e).__name__}: {e}\n{resume_hint(out)}",
+              file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(1)
+    if rank == 0:
+        finish(cfg, out, p, merge_learner_rows(out, world_size, run_id),
+               make_logger(cfg, out), Checkpoints(out / "checkpoint.pt", cfg.resume), t_start,
+               SimulatedCommunicator(n_learners=1))
+
+
+@hydra.main(config_path="../configs", config_name="train", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    t_start = time.perf_counter()
+    out = Path(HydraConfig.get().runtime.output_dir)
+    torch.set_num_threads(int(os.environ.get("DICRL_THREADS", torch.get_num_threads())))
+    if not issubclass(get_class(cfg.comm._target_), DistributedCommunicator):
+        if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+            raise ValueError(f"Started as one of WORLD_SIZE={os.environ['WORLD_SIZE']} "
+                             f"processes (torchrun?) with comm={cfg.comm._target_}, which runs "
+                             f"every learner in each process; add comm=distributed.")
+        run_simulated(cfg, out, t_start)
+    elif "RANK" in os.environ and "WORLD_SIZE" in os.environ:
+        run_torchrun(cfg, out, t_start)
+    else:
+        run_spawned(cfg, out, t_start)
 
 
 if __name__ == "__main__":

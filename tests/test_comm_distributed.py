@@ -191,7 +191,9 @@ def test_privacy_audit_on_every_rank(trainer_runs):
     sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,)}
     for rank, r in enumerate(runs):
         msgs = r["messages"]
-        assert {m.field for m in msgs} == set(ALLOWED_FIELDS)
+        # Algorithm 2 (the default inner method) sends no inner gradient tracker.
+        assert {m.field for m in msgs} == {"eta", "cost_weights", "tracker"}
+        assert set(sizes) <= set(ALLOWED_FIELDS)
         for m in msgs:
             assert m.field in ALLOWED_FIELDS and m.shape == sizes[m.field]
             assert m.sender == rank

@@ -1,0 +1,163 @@
+"""experiments/train.py with one process per learner (``comm=distributed``), spawned by
+the entry point or started by torchrun: the same results.json as the all-in-one-process
+simulated run, bit for bit; a dead learner fails the run and resume finishes it."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+import torch.distributed as dist
+
+ROOT = Path(__file__).resolve().parents[1]
+TORCHRUN = Path(sys.executable).parent / "torchrun"
+# tests/test_configs.py's TINY, with 2 learners and 2 outer iterations
+TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
+        "algo.outer_iterations=2", "algo.inner_steps=2", "eval_episodes=10",
+        "n_demonstrations=10", "split=[4,6]", "logger=none"]
+
+pytestmark = pytest.mark.skipif(not (dist.is_available() and dist.is_gloo_available()),
+                                reason="torch.distributed with gloo is not available")
+
+
+def run_train(run_dir, *extra, env=None, launcher=(sys.executable,)):
+    return subprocess.run(
+        [*launcher, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={run_dir}",
+         *TINY, *extra], capture_output=True, text=True, cwd=ROOT, timeout=300,
+        env={**os.environ, **(env or {})})
+
+
+def torchrun(n: int) -> tuple[str, ...]:
+    if not TORCHRUN.exists():
+        pytest.skip(f"no torchrun next to {sys.executable}")
+    return (str(TORCHRUN), "--standalone", "--nproc_per_node", str(n))
+
+
+def differences(a, b, where="") -> list[str]:
+    """Every place where ``a`` and ``b`` differ, with |difference| for numbers."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return [f"{where}: keys {sorted(a)} != {sorted(b)}"]
+        return [d for k in a for d in differences(a[k], b[k], f"{where}.{k}")]
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return [d for i, (x, y) in enumerate(zip(a, b, strict=True))
+                for d in differences(x, y, f"{where}[{i}]")]
+    if isinstance(a, float) and isinstance(b, float) and not (math.isnan(a) and math.isnan(b)):
+        return [] if a == b else [f"{where}: {a!r} vs {b!r} (|diff| {abs(a - b):.3g})"]
+    return [] if a == b else [f"{where}: {a!r} vs {b!r}"]
+
+
+def assert_same_results(run_dir: Path, reference: Path) -> None:
+    """D-ICRL, C-ICRL and expert rows, histories and disagreement: exactly equal."""
+    got, want = (json.loads((p / "results.json").read_text()) for p in (run_dir, reference))
+    assert len(got["methods"]["D-ICRL"]["learners"]) == 2
+    diffs = differences({k: got[k] for k in ("methods", "history",
+                                             "consensus_max_pairwise_cost_distance")},
+                        {k: want[k] for k in ("methods", "history",
+                                              "consensus_max_pairwise_cost_distance")})
+    assert not diffs, f"{len(diffs)} differences:\n" + "\n".join(diffs[:30])
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory) -> Path:
+    """The reference: every learner in one process (comm=simulated, the default)."""
+    run_dir = tmp_path_factory.mktemp("simulated")
+    out = run_train(run_dir)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return run_dir
+
+
+@pytest.fixture(scope="module")
+def spawned(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("spawned")
+    out = run_train(run_dir, "comm=distributed")
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "starting 2 learner processes" in out.stdout and "D-ICRL 2" in out.stdout
+    return run_dir
+
+
+def test_spawned_learners_reproduce_the_simulated_run(spawned, simulated):
+    assert_same_results(spawned, simulated)
+    for r in (0, 1):
+        part = json.loads((spawned / "learner_rows" / f"rank{r}.json").read_text())
+        assert part["rank"] == r and part["world_size"] == 2
+        saved = torch.load(spawned / f"checkpoint_rank{r}.pt", weights_only=True)
+        assert saved["D-ICRL"]["outer_iteration"] == 2
+        assert saved["D-ICRL:previous"]["outer_iteration"] == 1
+    assert set(torch.load(spawned / "checkpoint.pt", weights_only=True)) == {"C-ICRL"}
+    cfg = json.loads((spawned / "results.json").read_text())["config"]["comm"]
+    assert cfg["_target_"].endswith("DistributedCommunicator") and cfg["backend"] == "gloo"
+
+
+def test_torchrun_learners_reproduce_the_simulated_run(tmp_path, simulated):
+    out = run_train(tmp_path, "comm=distributed", launcher=torchrun(2))
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.count("D-ICRL 2") == 1  # only rank 0 prints the table
+    assert_same_results(tmp_path, simulated)
+
+
+def test_torchrun_world_size_must_match_the_split(tmp_path):
+    out = run_train(tmp_path, "comm=distributed", launcher=torchrun(3))
+    assert out.returncode != 0
+    assert ("torchrun started WORLD_SIZE=3 processes but split=[4, 6] has 2 learners"
+            in out.stderr)
+    assert "--nproc_per_node 2" in out.stderr
+    assert not (tmp_path / "results.json").exists()
+
+
+def test_a_dead_learner_fails_the_run_and_resume_finishes_it(tmp_path, simulated):
+    t0 = time.monotonic()
+    crashed = run_train(tmp_path, "comm=distributed",
+                        env={"DICRL_CRASH_AFTER": "D-ICRL@rank1:1"})  # SIGKILL after it. 1
+    elapsed = time.monotonic() - t0
+    assert crashed.returncode == 1, crashed.stderr[-3000:]
+    err = crashed.stderr
+    assert "rank 1: exited with code -9" in err
+    assert "rank 0: PeerFailureError: Learner 0 of 2" in err  # no waiting for the dead peer
+    assert f"resume=true hydra.run.dir={tmp_path}" in err
+    assert elapsed < 60, f"took {elapsed:.0f} s"
+    assert not (tmp_path / "results.json").exists()
+    for r in (0, 1):
+        saved = torch.load(tmp_path / f"checkpoint_rank{r}.pt", weights_only=True)
+        assert saved["D-ICRL"]["outer_iteration"] == 1
+    resumed = run_train(tmp_path, "comm=distributed", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "D-ICRL learners continue after outer iteration 1" in resumed.stdout
+    assert_same_results(tmp_path, simulated)
+
+
+@pytest.mark.slow  # ~10 s
+def test_resume_when_one_learner_is_a_save_behind(tmp_path, spawned, simulated):
+    """Learner 1 died after the last exchange of iteration 2 but before saving it:
+    learner 0 falls back to its previous save, and the run ends as if never stopped."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(spawned, run_dir)
+    (run_dir / "results.json").unlink()
+    path = run_dir / "checkpoint_rank1.pt"
+    saved = torch.load(path, weights_only=True)
+    torch.save({"D-ICRL": saved["D-ICRL:previous"]}, path)
+    resumed = run_train(run_dir, "comm=distributed", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "D-ICRL learners continue after outer iteration 1" in resumed.stdout
+    assert_same_results(run_dir, simulated)
+
+
+@pytest.mark.slow  # ~10 s
+def test_a_dead_learner_fails_a_torchrun_run(tmp_path):
+    t0 = time.monotonic()
+    out = run_train(tmp_path, "comm=distributed", launcher=torchrun(2),
+                    env={"DICRL_CRASH_AFTER": "D-ICRL@rank1:1"})
+    assert out.returncode != 0
+    assert time.monotonic() - t0 < 60
+    assert "exitcode  : -9" in out.stderr  # torchrun's report on rank 1
+    assert not (tmp_path / "results.json").exists()
+    for r in (0, 1):
+        assert (tmp_path / f"checkpoint_rank{r}.pt").exists()
