@@ -1,0 +1,694 @@
+"""Expert demonstrations of the drone arena (DESIGN §7, paper §6.2): planner, storage,
+partitioning.
+
+The experts are a planner, imperfect and human-like like the paper's hand-flown
+Gazebo pairs. For each pair it draws via-points at random (from an explicit
+``np.random.Generator``) inside boxes that route each drone through the central gap and
+around its side of the centre block, checks that the piecewise-linear path keeps a
+clearance from obstacles and walls, and gives each drone a random cruise speed. One
+drone, drawn at random, yields: it hovers at its first via-point, below the gap, until
+the other has crossed, for the shortest wait (plus a random hesitation) that keeps the
+planned drones ``SAFE_SEPARATION`` apart. A feed-forward plus proportional velocity
+controller tracks the timed paths in the *true* game (:class:`DroneArena` with its
+noise); only pairs in which both drones reach their doors with no violation are kept.
+
+A set of ``m`` pairs is ``states [m, T+1, 2, 4]`` float64 (positions and velocities),
+``actions [m, T, 2, 2]`` float64 velocity commands, ``lengths [m]`` int64 (steps until
+both drones were done; later entries repeat the last state, with zero actions) and the
+time step ``dt``; optionally ``seeds [m]`` int64, the env seed of each pair, which makes
+a pair exactly replayable (:func:`replay_pair`). On disk it is an ``.npz`` read with
+``allow_pickle=False`` and checked against a schema; errors name the file, the field
+and the fix (the house style of :mod:`dicrl_torch.demos.storage`).
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+import zipfile
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from dicrl_torch.envs.drones import (
+    AGENTS,
+    DOORS,
+    N_DRONES,
+    OBSTACLES,
+    ROOM_SIZE,
+    DroneArena,
+    DroneDynamics,
+    in_own_door,
+)
+
+FORMAT_VERSION = 1
+ARRAY_FIELDS: tuple[str, ...] = ("states", "actions", "lengths")
+SCALAR_FIELDS: tuple[str, ...] = ("dt", "format_version")
+OPTIONAL_FIELDS: tuple[str, ...] = ("seeds",)
+FIELDS: tuple[str, ...] = ARRAY_FIELDS + SCALAR_FIELDS
+PAPER_DRONE_SPLIT: tuple[int, ...] = (4, 5)
+"""The paper's split of the 9 pairs over two learners."""
+
+# ---- planner constants (metres, seconds) -------------------------------------------
+CLEARANCE: float = 0.35
+"""Least distance of a planned path from obstacles and walls (doors excepted)."""
+SAFE_SEPARATION: float = 1.0
+"""Least planned distance between the drones (twice the collision radius), so that
+tracking errors and noise never bring them within ``PROXIMITY_RADIUS``."""
+CRUISE_SPEED: tuple[float, float] = (0.6, 0.85)
+"""Range of each drone's cruise speed along its path (m/s), below ``max_speed`` so
+the controller keeps headroom to correct tracking errors."""
+HESITATION: tuple[float, float] = (0.0, 1.0)
+"""Range of the extra wait (s) of the yielding drone, on top of the shortest safe one."""
+KP: float = 1.5
+"""Proportional gain (1/s) of the tracking controller."""
+VIA_BOXES: tuple[tuple[tuple[float, float], tuple[float, float]], ...] = (
+    ((3.7, 4.5), (2.6, 3.4)),  # below the gap, left part: the yielding drone hovers here
+    ((6.3, 6.7), (5.35, 5.65)),  # above the gap, to the right of the centre block
+    ((6.8, 7.4), (6.6, 7.6)),  # beside the centre block's right side
+    ((8.4, 9.1), (8.6, 9.2)),  # below the door
+)
+"""``((x_lo, x_hi), (y_lo, y_hi))`` boxes of drone 0's via-points, in path order; drone 1
+uses their mirror image ``x -> ROOM_SIZE - x``. The path ends above the last one, at
+``y = ROOM_SIZE - 0.05``, inside the door's mouth."""
+_HOLD_WAYPOINT = 1  # index in the waypoint list (0 is the start): the first via-point
+_MAX_WAIT_S = 12.0
+_WAIT_STEP_S = 0.25
+
+# What np.load / zipfile / zlib raise on a damaged archive or member.
+_READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, KeyError)
+
+
+# ====================================================================== data + schema
+def _is_int(x: object) -> bool:
+    return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
+
+
+def _check_float_array(a: np.ndarray, field: str, source: str) -> None:
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(
+            f"{source}: field '{field}' has dtype {a.dtype}, but it must be a float "
+            f"array; store it as `{field}.astype(np.float64)`."
+        )
+    if not np.all(np.isfinite(a)):
+        idx = tuple(int(v) for v in np.argwhere(~np.isfinite(a))[0])
+        raise ValueError(
+            f"{source}: field '{field}' holds a NaN or inf at index {idx}; "
+            f"demonstrations must be finite. Regenerate them."
+        )
+
+
+def validate_drone_arrays(
+    states: ArrayLike, actions: ArrayLike, lengths: ArrayLike, dt: float,
+    seeds: ArrayLike | None = None, *, source: str,
+) -> None:
+    """Check drone demonstration arrays against the schema; raise ``ValueError`` if not.
+
+    Args:
+        states: ``[m, T+1, 2, 4]`` float positions (in the room ``[0, 10]^2``) and
+            velocities.
+        actions: ``[m, T, 2, 2]`` float velocity commands in ``[-1, 1]``.
+        lengths: ``[m]`` int in ``[1, T]``: steps until both drones were done; after
+            it the states repeat and the actions are 0.
+        dt: positive time step in seconds.
+        seeds: None or ``[m]`` non-negative int env seeds.
+        source: what the arrays came from, put at the start of every error message.
+
+    Raises:
+        ValueError: naming ``source``, the offending field and the fix.
+    """
+    if isinstance(dt, bool | np.bool_) or not isinstance(dt, int | float | np.number) \
+            or not np.isfinite(dt) or dt <= 0:
+        raise ValueError(f"{source}: field 'dt' must be a positive finite float, got {dt!r}.")
+    states, actions, lengths = np.asarray(states), np.asarray(actions), np.asarray(lengths)
+    _check_float_array(states, "states", source)
+    _check_float_array(actions, "actions", source)
+    if states.ndim != 4 or states.shape[2:] != (N_DRONES, 4) or states.shape[0] == 0 \
+            or states.shape[1] < 2:
+        raise ValueError(
+            f"{source}: field 'states' must have shape [m, T+1, {N_DRONES}, 4] with m >= 1 "
+            f"and T >= 1, got shape {states.shape}."
+        )
+    m, t1 = states.shape[:2]
+    if actions.shape != (m, t1 - 1, N_DRONES, 2):
+        raise ValueError(
+            f"{source}: field 'actions' has shape {actions.shape}, but states "
+            f"{states.shape} = [m, T+1, {N_DRONES}, 4] requires actions of shape "
+            f"{(m, t1 - 1, N_DRONES, 2)} = [m, T, {N_DRONES}, 2]."
+        )
+    if not np.issubdtype(lengths.dtype, np.integer) or lengths.shape != (m,):
+        raise ValueError(
+            f"{source}: field 'lengths' must be an integer array of shape ({m},), got "
+            f"dtype {lengths.dtype} shape {lengths.shape}; store `lengths.astype(np.int64)`."
+        )
+    pos = states[..., :2]
+    bad = (pos < 0.0) | (pos > ROOM_SIZE)
+    if bad.any():
+        k, t, i, c = (int(v) for v in np.argwhere(bad)[0])
+        raise ValueError(
+            f"{source}: field 'states' puts drone {i} at {pos[k, t, i].tolist()} (pair {k}, "
+            f"time {t}), outside the room [0, {ROOM_SIZE}]^2; expert demonstrations "
+            f"never leave the room. Regenerate them."
+        )
+    bad = np.abs(actions) > 1.0
+    if bad.any():
+        k, t, i, c = (int(v) for v in np.argwhere(bad)[0])
+        raise ValueError(
+            f"{source}: field 'actions' holds {actions[k, t, i, c]} (pair {k}, time {t}, "
+            f"drone {i}), outside the command range [-1, 1]; clip or regenerate it."
+        )
+    out = (lengths < 1) | (lengths > t1 - 1)
+    if out.any():
+        k = int(np.flatnonzero(out)[0])
+        raise ValueError(
+            f"{source}: field 'lengths' holds {int(lengths[k])} for pair {k}, outside "
+            f"[1, T={t1 - 1}]; a length counts the steps of the pair's episode."
+        )
+    for k, n in enumerate(lengths.tolist()):
+        if not (np.all(states[k, n + 1:] == states[k, n]) and np.all(actions[k, n:] == 0)):
+            raise ValueError(
+                f"{source}: field 'lengths' says pair {k} ends after {n} steps, but its "
+                f"states change or its actions are non-zero later; the lengths do not "
+                f"match the trajectories. Regenerate the demonstrations."
+            )
+    if seeds is not None:
+        seeds = np.asarray(seeds)
+        if not np.issubdtype(seeds.dtype, np.integer) or seeds.shape != (m,) \
+                or (seeds < 0).any():
+            raise ValueError(
+                f"{source}: field 'seeds' must be non-negative ints of shape ({m},), got "
+                f"dtype {seeds.dtype} shape {seeds.shape}."
+            )
+
+
+def _frozen(a: ArrayLike, dtype: type) -> np.ndarray:
+    out = np.array(a, dtype=dtype, copy=True)
+    out.flags.writeable = False
+    return out
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class DroneDemonstrations:
+    """Demonstrated pairs of drone trajectories, validated on construction.
+
+    The arrays are copied read-only (float64, int64), so the object is immutable.
+
+    Args:
+        states: ``[m, T+1, 2, 4]`` positions ``(x, y)`` and velocities ``(vx, vy)``.
+        actions: ``[m, T, 2, 2]`` velocity commands in ``[-1, 1]`` (0 once done).
+        lengths: ``[m]`` steps until both drones of a pair were done.
+        dt: time step in seconds.
+        seeds: optional ``[m]`` env seeds, for an exact replay with :func:`replay_pair`.
+    """
+
+    states: np.ndarray
+    actions: np.ndarray
+    lengths: np.ndarray
+    dt: float
+    seeds: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        validate_drone_arrays(self.states, self.actions, self.lengths, self.dt, self.seeds,
+                              source="DroneDemonstrations")
+        object.__setattr__(self, "states", _frozen(self.states, np.float64))
+        object.__setattr__(self, "actions", _frozen(self.actions, np.float64))
+        object.__setattr__(self, "lengths", _frozen(self.lengths, np.int64))
+        object.__setattr__(self, "dt", float(self.dt))
+        if self.seeds is not None:
+            object.__setattr__(self, "seeds", _frozen(self.seeds, np.int64))
+
+    @property
+    def n_pairs(self) -> int:
+        """``m``."""
+        return self.states.shape[0]
+
+    @property
+    def horizon(self) -> int:
+        """``T``, the padded number of steps."""
+        return self.actions.shape[1]
+
+    def drone_lengths(self) -> np.ndarray:
+        """``[m, 2]`` int64: the step at which each drone reached its door (its last
+        state); ``lengths`` where it did not."""
+        at = in_own_door(self.states[:, 1:, :, :2])  # [m, T, 2]
+        first = np.where(at.any(1), at.argmax(1) + 1, self.lengths[:, None])
+        return np.minimum(first, self.lengths[:, None]).astype(np.int64)
+
+    def subset(self, indices: ArrayLike) -> DroneDemonstrations:
+        """The pairs at ``indices`` (1-D ints, in that order) as new demonstrations."""
+        idx = np.asarray(indices)
+        if idx.ndim != 1 or not (idx.size == 0 or np.issubdtype(idx.dtype, np.integer)):
+            raise ValueError(
+                f"subset indices must be a 1-D sequence of ints, got dtype {idx.dtype} "
+                f"shape {idx.shape}."
+            )
+        if idx.size and (idx.min() < -self.n_pairs or idx.max() >= self.n_pairs):
+            raise ValueError(
+                f"subset indices must lie in [0, {self.n_pairs}), got [{idx.min()}, "
+                f"{idx.max()}]."
+            )
+        return DroneDemonstrations(
+            states=self.states[idx], actions=self.actions[idx], lengths=self.lengths[idx],
+            dt=self.dt, seeds=None if self.seeds is None else self.seeds[idx],
+        )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, DroneDemonstrations):
+            return NotImplemented
+        seeds_eq = (self.seeds is None and other.seeds is None) or (
+            self.seeds is not None and other.seeds is not None
+            and np.array_equal(self.seeds, other.seeds))
+        return (
+            self.dt == other.dt and seeds_eq
+            and np.array_equal(self.states, other.states)
+            and np.array_equal(self.actions, other.actions)
+            and np.array_equal(self.lengths, other.lengths)
+        )
+
+    __hash__ = None  # type: ignore[assignment]  # mutable-by-content arrays: unhashable
+
+    def __repr__(self) -> str:
+        return f"DroneDemonstrations(m={self.n_pairs}, T={self.horizon}, dt={self.dt})"
+
+
+# ================================================================================ disk
+def save_drone_demonstrations(
+    path: str | os.PathLike[str], demos: DroneDemonstrations
+) -> Path:
+    """Write ``demos`` to ``path`` as a compressed ``.npz``, atomically (a temporary
+    file moved into place), creating parent directories; no suffix is appended.
+
+    Returns:
+        The path written.
+    """
+    if not isinstance(demos, DroneDemonstrations):
+        raise TypeError(
+            f"save_drone_demonstrations expects a DroneDemonstrations, got "
+            f"{type(demos).__name__}; build one with make_drone_demonstrations(...)."
+        )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    fields = {"states": demos.states, "actions": demos.actions, "lengths": demos.lengths,
+              "dt": np.float64(demos.dt), "format_version": np.int64(FORMAT_VERSION)}
+    if demos.seeds is not None:
+        fields["seeds"] = demos.seeds
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            # A file object, not a name: np.savez would otherwise append ".npz".
+            np.savez_compressed(f, **fields)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _read_field(archive: Any, field: str, source: str) -> np.ndarray:
+    try:
+        return archive[field]
+    except ValueError as e:
+        if "allow_pickle" in str(e):
+            raise ValueError(
+                f"{source}: field '{field}' is an object (pickled) array, which is never "
+                f"loaded for safety; store it as a numeric array and re-save with "
+                f"save_drone_demonstrations."
+            ) from e
+        raise ValueError(
+            f"{source}: field '{field}' cannot be read ({e}); the file is corrupt. "
+            f"Regenerate it with save_drone_demonstrations."
+        ) from e
+    except _READ_ERRORS as e:
+        raise ValueError(
+            f"{source}: field '{field}' cannot be read ({type(e).__name__}: {e}); the file "
+            f"is truncated or corrupt. Regenerate it with save_drone_demonstrations."
+        ) from e
+
+
+def _read_scalar(archive: Any, field: str, kind: str, source: str) -> int | float:
+    a = _read_field(archive, field, source)
+    want = np.integer if kind == "int" else np.floating
+    if a.ndim != 0 or not np.issubdtype(a.dtype, want):
+        raise ValueError(
+            f"{source}: field '{field}' must be a {kind} scalar, got dtype {a.dtype} shape "
+            f"{a.shape}. Re-save the file with save_drone_demonstrations."
+        )
+    return int(a) if kind == "int" else float(a)
+
+
+def load_drone_demonstrations(
+    path: str | os.PathLike[str], *, n_pairs: int | None = None, dt: float | None = None,
+) -> DroneDemonstrations:
+    """Read demonstrations written by :func:`save_drone_demonstrations`, never unpickling.
+
+    Args:
+        path: the ``.npz`` file.
+        n_pairs, dt: when given, the file must hold exactly this many pairs / this
+            time step.
+
+    Returns:
+        The validated demonstrations.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: the file is not a valid drone demonstrations archive or does not
+            match the expectation; the message names the file, the field and the fix.
+    """
+    path = Path(path)
+    source = f"drone demonstrations file '{path}'"
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"No {source}: it does not exist or is not a file. Generate the "
+            f"demonstrations with make_drone_demonstrations first, or fix the path."
+        )
+    with open(path, "rb") as fh:  # closed on every path, unlike np.load's own handle
+        try:
+            archive = np.load(fh, allow_pickle=False)
+        except _READ_ERRORS as e:
+            why = "not an array file" if "pickle" in str(e) else f"{type(e).__name__}: {e}"
+            raise ValueError(
+                f"{source} cannot be opened as an .npz archive ({why}); it is truncated, "
+                f"corrupt or not an .npz. Regenerate it with save_drone_demonstrations."
+            ) from e
+        if not isinstance(archive, np.lib.npyio.NpzFile):
+            raise ValueError(
+                f"{source} holds a single .npy array, not an .npz archive with fields "
+                f"{list(FIELDS)}; re-save it with save_drone_demonstrations."
+            )
+        with archive:
+            names = set(archive.files)
+            missing = [f for f in FIELDS if f not in names]
+            if missing:
+                raise ValueError(
+                    f"{source}: missing field(s) {missing}; a drone demonstrations file "
+                    f"needs {list(FIELDS)}. Re-save it with save_drone_demonstrations."
+                )
+            unknown = sorted(names - set(FIELDS) - set(OPTIONAL_FIELDS))
+            if unknown:
+                raise ValueError(
+                    f"{source}: unknown field(s) {unknown}; a drone demonstrations file "
+                    f"holds only {list(FIELDS + OPTIONAL_FIELDS)}. Re-save it with "
+                    f"save_drone_demonstrations."
+                )
+            version = _read_scalar(archive, "format_version", "int", source)
+            if version != FORMAT_VERSION:
+                raise ValueError(
+                    f"{source}: field 'format_version' is {version}, but this code reads "
+                    f"only version {FORMAT_VERSION}; regenerate the file with this version "
+                    f"of dicrl_torch."
+                )
+            file_dt = _read_scalar(archive, "dt", "float", source)
+            arrays = {f: _read_field(archive, f, source) for f in ARRAY_FIELDS}
+            seeds = _read_field(archive, "seeds", source) if "seeds" in names else None
+    validate_drone_arrays(arrays["states"], arrays["actions"], arrays["lengths"], file_dt,
+                          seeds, source=source)
+    found = {"n_pairs": arrays["states"].shape[0], "dt": file_dt}
+    for name, want in (("n_pairs", n_pairs), ("dt", dt)):
+        if want is not None and found[name] != want:
+            raise ValueError(
+                f"{source}: field '{name}' is {found[name]} in the file but {want} was "
+                f"expected; regenerate the demonstrations for this configuration or point "
+                f"to the matching file."
+            )
+    return DroneDemonstrations(dt=file_dt, seeds=seeds, **arrays)
+
+
+def partition_drone_demonstrations(
+    demos: DroneDemonstrations,
+    sizes: Sequence[int] = PAPER_DRONE_SPLIT,
+    *,
+    rng: np.random.Generator | None = None,
+) -> list[DroneDemonstrations]:
+    """Split the ``m`` pairs into consecutive, disjoint shards (default 4/5).
+
+    Args:
+        demos: the pairs.
+        sizes: shard sizes, one per learner, positive and summing to ``m``.
+        rng: when given, the pairs are shuffled with it first.
+
+    Returns:
+        ``len(sizes)`` demonstrations; shard ``k`` has ``sizes[k]`` pairs.
+    """
+    if not isinstance(demos, DroneDemonstrations):
+        raise TypeError(f"demos must be a DroneDemonstrations, got {type(demos).__name__}.")
+    if rng is not None and not isinstance(rng, np.random.Generator):
+        raise TypeError(
+            f"rng must be a numpy.random.Generator or None, got {type(rng).__name__}; "
+            f"pass np.random.default_rng(seed)."
+        )
+    sizes = tuple(sizes)
+    if not sizes or any(not _is_int(s) or s <= 0 for s in sizes):
+        raise ValueError(f"Shard sizes must be positive ints, one per learner, got {list(sizes)}.")
+    if sum(sizes) != demos.n_pairs:
+        raise ValueError(
+            f"Shard sizes {list(sizes)} sum to {sum(sizes)}, but there are {demos.n_pairs} "
+            f"pairs; make the sizes sum to {demos.n_pairs}."
+        )
+    order = rng.permutation(demos.n_pairs) if rng is not None else np.arange(demos.n_pairs)
+    bounds = np.cumsum((0,) + sizes)
+    return [demos.subset(order[lo:hi]) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+# ============================================================================ planner
+@dataclass(frozen=True)
+class TimedPath:
+    """A piecewise-linear path flown at constant speed with one hover.
+
+    Args:
+        waypoints: ``[K, 2]`` positions, the first one the start.
+        speed: cruise speed (m/s).
+        hold_index: the waypoint at which the drone hovers.
+        hold_s: how long it hovers (s).
+    """
+
+    waypoints: np.ndarray
+    speed: float
+    hold_index: int = 0
+    hold_s: float = 0.0
+
+    @property
+    def _arc(self) -> np.ndarray:
+        seg = np.linalg.norm(np.diff(self.waypoints, axis=0), axis=1)
+        return np.concatenate([[0.0], np.cumsum(seg)])
+
+    def _s(self, t: np.ndarray) -> np.ndarray:
+        arc = self._arc
+        t_hold = arc[self.hold_index] / self.speed
+        s = self.speed * (np.minimum(t, t_hold) + np.maximum(0.0, t - t_hold - self.hold_s))
+        return np.clip(s, 0.0, arc[-1])
+
+    def position(self, t: ArrayLike) -> np.ndarray:
+        """``[..., 2]`` planned positions at times ``t [...]`` (s)."""
+        t = np.asarray(t, dtype=np.float64)
+        s, arc, w = self._s(t), self._arc, self.waypoints
+        return np.stack([np.interp(s, arc, w[:, 0]), np.interp(s, arc, w[:, 1])], -1)
+
+    def velocity(self, t: ArrayLike) -> np.ndarray:
+        """``[..., 2]`` planned velocities at times ``t [...]`` (0 hovering or at the end)."""
+        t = np.asarray(t, dtype=np.float64)
+        arc = self._arc
+        s = self._s(t)
+        seg = np.clip(np.searchsorted(arc, s, side="right") - 1, 0, len(arc) - 2)
+        d = np.diff(self.waypoints, axis=0)
+        unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+        t_hold = arc[self.hold_index] / self.speed
+        moving = (s < arc[-1]) & ~((t >= t_hold) & (t < t_hold + self.hold_s))
+        return unit[seg] * (self.speed * moving)[..., None]
+
+    @property
+    def duration(self) -> float:
+        """Time (s) at which the planned drone arrives."""
+        return self._arc[-1] / self.speed + self.hold_s
+
+
+def _box_distance(p: np.ndarray) -> np.ndarray:
+    """``[P]`` distance of points ``[P, 2]`` to the nearest obstacle (0 inside)."""
+    o = np.asarray(OBSTACLES)
+    dx = np.maximum(np.maximum(o[:, 0] - p[:, :1], 0.0), p[:, :1] - o[:, 2])
+    dy = np.maximum(np.maximum(o[:, 1] - p[:, 1:], 0.0), p[:, 1:] - o[:, 3])
+    return np.hypot(dx, dy).min(1)
+
+
+def path_clearance(waypoints: np.ndarray, drone: int, step: float = 0.05) -> float:
+    """Least distance (m) of the polyline ``waypoints [K, 2]`` from obstacles and walls;
+    the top wall is ignored inside drone ``drone``'s door span (shrunk by 0.2 m)."""
+    pts = [waypoints[:1]]
+    for a, b in zip(waypoints[:-1], waypoints[1:], strict=True):
+        n = max(2, int(np.ceil(np.linalg.norm(b - a) / step)) + 1)
+        pts.append(a + np.linspace(0.0, 1.0, n)[1:, None] * (b - a))
+    p = np.concatenate(pts)
+    lo, hi = DOORS[drone]
+    in_door = (p[:, 0] >= lo + 0.2) & (p[:, 0] <= hi - 0.2)
+    top = np.where(in_door, np.inf, ROOM_SIZE - p[:, 1])
+    walls = np.minimum.reduce([p[:, 0], ROOM_SIZE - p[:, 0], p[:, 1], top])
+    return float(np.minimum(walls, _box_distance(p)).min())
+
+
+def _sample_route(drone: int, start: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """``[6, 2]`` waypoints: start, 4 random via-points, the door; mirrored for drone 1."""
+    via = np.array([[rng.uniform(*bx), rng.uniform(*by)] for bx, by in VIA_BOXES])
+    end = np.array([[via[-1, 0], ROOM_SIZE - 0.05]])
+    pts = np.concatenate([via, end])
+    if drone == 1:
+        pts[:, 0] = ROOM_SIZE - pts[:, 0]
+    return np.concatenate([start[None], pts])
+
+
+def plan_pair(
+    starts: np.ndarray, rng: np.random.Generator, *, dt: float = 0.1,
+) -> tuple[TimedPath, TimedPath] | None:
+    """Plan timed paths for both drones from ``starts [2, 2]``; None when the drawn
+    via-points give no safe plan (the caller redraws).
+
+    Returns:
+        One :class:`TimedPath` per drone.
+    """
+    routes = [_sample_route(i, starts[i], rng) for i in range(N_DRONES)]
+    if min(path_clearance(r, i) for i, r in enumerate(routes)) < CLEARANCE:
+        return None
+    speeds = rng.uniform(*CRUISE_SPEED, size=N_DRONES)
+    yielder = int(rng.integers(N_DRONES))
+    wait = float(rng.uniform(*HESITATION))
+    while wait <= _MAX_WAIT_S:
+        paths = [TimedPath(routes[i], float(speeds[i]), _HOLD_WAYPOINT,
+                           wait if i == yielder else 0.0) for i in range(N_DRONES)]
+        t = np.arange(0.0, min(p.duration for p in paths) + dt, dt)
+        gap = np.linalg.norm(paths[0].position(t) - paths[1].position(t), axis=-1)
+        if gap.min() >= SAFE_SEPARATION:
+            return paths[0], paths[1]
+        wait += _WAIT_STEP_S
+    return None
+
+
+def track(path: TimedPath, t: float, state: np.ndarray, dynamics: DroneDynamics) -> np.ndarray:
+    """``[2]`` velocity command in ``[-1, 1]`` following ``path`` at time ``t``.
+
+    Feed-forward of the planned velocity one time constant ahead (so the first-order
+    lag does not make the drone cut corners late) plus a proportional pull towards the
+    planned position.
+
+    Args:
+        path: the timed path.
+        t: time since the start (s).
+        state: ``[4]`` position and velocity.
+        dynamics: the drone dynamics (for ``tau`` and ``max_speed``).
+    """
+    v = path.velocity(t + dynamics.tau) + KP * (path.position(t) - state[:2])
+    return np.clip(v / dynamics.max_speed, -1.0, 1.0)
+
+
+def fly_pair(
+    paths: tuple[TimedPath, TimedPath], env: DroneArena, seed: int,
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Track ``paths`` in ``env`` reset with ``seed`` (whose starts the paths must use).
+
+    Returns:
+        ``states [L+1, 2, 4]``, ``actions [L, 2, 2]`` (0 for done drones) and whether
+        both drones reached their doors without a violation.
+    """
+    env.reset(seed=seed)
+    states, actions = [env.state()], []
+    while env.agents:
+        t = env.timestep * env.dynamics.dt
+        s = env.state()
+        cmd = np.zeros((N_DRONES, 2))
+        for a in env.agents:
+            i = AGENTS.index(a)
+            cmd[i] = track(paths[i], t, s[i], env.dynamics)
+        env.step({a: cmd[AGENTS.index(a)] for a in env.agents})
+        states.append(env.state())
+        actions.append(cmd)
+    ok = bool(env.reached.all() and not env.violated.any())
+    return np.stack(states), np.stack(actions), ok
+
+
+def make_drone_demonstrations(
+    n_pairs: int = 9,
+    *,
+    rng: np.random.Generator,
+    dynamics: DroneDynamics | None = None,
+    max_steps: int = 300,
+    max_attempts: int | None = None,
+) -> DroneDemonstrations:
+    """Plan and fly ``n_pairs`` successful demonstration pairs in the true game.
+
+    Args:
+        n_pairs: number of pairs ``m`` (9 in the paper).
+        rng: the only source of randomness: via-points, speeds, yielding, env seeds.
+        dynamics: the drone dynamics (default :class:`DroneDynamics()`).
+        max_steps: episode limit of the env the pairs are flown in.
+        max_attempts: how many plans to try in all (default ``20 * n_pairs``).
+
+    Returns:
+        The demonstrations, padded to the longest pair, with their env seeds.
+
+    Raises:
+        RuntimeError: fewer than ``n_pairs`` successful pairs in ``max_attempts``.
+    """
+    if not _is_int(n_pairs) or n_pairs < 1:
+        raise ValueError(f"n_pairs must be a positive int, got {n_pairs!r}.")
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(
+            f"rng must be a numpy.random.Generator, got {type(rng).__name__}; pass "
+            f"np.random.default_rng(seed)."
+        )
+    max_attempts = 20 * n_pairs if max_attempts is None else max_attempts
+    env = DroneArena(constrained=True, max_steps=max_steps, dynamics=dynamics)
+    pairs: list[tuple[np.ndarray, np.ndarray, int]] = []
+    attempts = 0
+    while len(pairs) < n_pairs:
+        if attempts >= max_attempts:
+            raise RuntimeError(
+                f"Only {len(pairs)} of {n_pairs} drone demonstration pairs succeeded in "
+                f"{max_attempts} attempts; raise max_steps or max_attempts, or lower the "
+                f"dynamics' noise_std."
+            )
+        attempts += 1
+        seed = int(rng.integers(2**31 - 1))
+        env.reset(seed=seed)
+        plan = plan_pair(env.state()[:, :2], rng, dt=env.dynamics.dt)
+        if plan is None:
+            continue
+        states, actions, ok = fly_pair(plan, env, seed)
+        if ok:
+            pairs.append((states, actions, seed))
+    lengths = np.array([len(a) for _, a, _ in pairs], dtype=np.int64)
+    horizon = int(lengths.max())
+    S = np.empty((n_pairs, horizon + 1, N_DRONES, 4))
+    A = np.zeros((n_pairs, horizon, N_DRONES, 2))
+    for k, (s, a, _) in enumerate(pairs):
+        S[k, : len(s)] = s
+        S[k, len(s):] = s[-1]
+        A[k, : len(a)] = a
+    return DroneDemonstrations(states=S, actions=A, lengths=lengths, dt=env.dynamics.dt,
+                               seeds=np.array([sd for _, _, sd in pairs], dtype=np.int64))
+
+
+def replay_pair(
+    demos: DroneDemonstrations, k: int, *, constrained: bool = True,
+    dynamics: DroneDynamics | None = None, max_steps: int = 300,
+) -> tuple[np.ndarray, DroneArena]:
+    """Re-fly pair ``k``'s recorded actions in a fresh env reset with its seed.
+
+    Returns:
+        ``states [lengths[k]+1, 2, 4]`` and the env (for ``reached``/``violated``).
+    """
+    if demos.seeds is None:
+        raise ValueError("These demonstrations carry no seeds; an exact replay needs them.")
+    env = DroneArena(constrained=constrained, max_steps=max_steps, dynamics=dynamics)
+    env.reset(seed=int(demos.seeds[k]))
+    states = [env.state()]
+    for t in range(int(demos.lengths[k])):
+        if not env.agents:
+            break
+        env.step({a: demos.actions[k, t, AGENTS.index(a)] for a in env.agents})
+        states.append(env.state())
+    return np.stack(states), env

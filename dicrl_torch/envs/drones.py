@@ -1,0 +1,825 @@
+"""The continuous two-drone arena (DESIGN §7, paper §6.2) as a PettingZoo ``ParallelEnv``.
+
+Geometry (metres, ``x`` to the right, ``y`` up, origin at the bottom-left corner)::
+
+    y=10 ─┬──door 1──┬───────────────────────────┬──door 0──┬─  (doors in the top wall)
+          │ 0.5   2.0                             8.0    9.5 │
+      8   │                ┌─────────┐                      │
+          │                │ centre  │                      │
+      6   │                └─────────┘                      │
+      5   │   ┌───────┐       gap        ┌───────┐          │
+      4   │   └─ left ┘                  └ right ┘          │
+          │                                                 │
+      1   │  d0 start (1, 1)                 d1 start (9, 1)│
+      0   └─────────────────────────────────────────────────┘
+          0   1       3     4       6    7       9          10
+
+``drone_0`` starts near the bottom-left corner and leaves through the door near the
+top-right corner; ``drone_1`` mirrors it. Both routes pass through the gap between the
+two wing walls, so the paths cross in the middle, and then around the centre block on
+opposite sides. All obstacles are aligned to the 1 m grid so that "cells overlapping an
+obstacle" (the true cost constraints of the cell basis) are exactly the cells inside one.
+
+Dynamics of each drone (fixed altitude, planar): the action is a velocity command
+``u ∈ [-1, 1]^2`` (times ``max_speed``), tracked with a first-order response plus
+Gaussian noise drawn from the env's seeded generator::
+
+    v' = clip(v + (dt / tau) (max_speed * u - v) + noise, ±vel_limit)
+    p' = clip(p + dt * v', world box)
+
+True constraints (violations): being inside an obstacle box, being outside the room
+unless in the own door's mouth, and the two active drones closer than
+``proximity_radius`` (a collision; both violate). A drone whose position enters the
+mouth of its own door (the door's span, the top ``DOOR_DEPTH`` metres of the room and
+beyond) has reached it: it is done (success) and leaves the arena. In the true game
+(``constrained=True``) a violator freezes: it stops, is terminated and removed from the
+arena, like the grid world. In the nominal game violations are only reported.
+
+The per-step game transition is the pure function :func:`joint_step`, which works on
+numpy arrays and torch tensors with any leading batch shape, so a solver can batch it.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium import logger, spaces
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle, Rectangle
+from pettingzoo import ParallelEnv
+
+# ---------------------------------------------------------------------------- layout
+ROOM_SIZE: float = 10.0
+"""Side of the square room in metres; the room is ``[0, ROOM_SIZE]^2``."""
+GRID_CELLS: int = 10
+"""Cells per side of the occupancy grid (1 m cells); cell ``(ix, iy)`` has index
+``iy * GRID_CELLS + ix`` (row 0 at the bottom)."""
+CELL_SIZE: float = ROOM_SIZE / GRID_CELLS
+
+OBSTACLES: tuple[tuple[float, float, float, float], ...] = (
+    (1.0, 4.0, 3.0, 5.0),  # left wing wall
+    (7.0, 4.0, 9.0, 5.0),  # right wing wall
+    (4.0, 6.0, 6.0, 8.0),  # centre block above the crossing
+)
+"""Axis-aligned obstacle boxes ``(x_lo, y_lo, x_hi, y_hi)``; a drone inside one violates."""
+
+DOORS: tuple[tuple[float, float], ...] = ((8.0, 9.5), (0.5, 2.0))
+"""Per drone, the ``(x_lo, x_hi)`` span of its door in the top wall ``y = ROOM_SIZE``."""
+DOOR_DEPTH: float = 0.3
+"""A drone with ``y >= ROOM_SIZE - DOOR_DEPTH`` inside its door's span has reached it.
+It is deeper than one step of travel (``dt * vel_limit = 0.15`` m by default), so no
+drone can cross the wall at its door without first being counted as arrived."""
+
+NOMINAL_STARTS: tuple[tuple[float, float], ...] = ((1.0, 1.0), (9.0, 1.0))
+"""Per drone, the nominal start; ``reset`` adds uniform jitter of ``±START_JITTER``."""
+START_JITTER: float = 0.25
+
+PROXIMITY_RADIUS: float = 0.5
+"""Two active drones closer than this (metres) collide."""
+WORLD_MARGIN: float = 1.0
+"""The simulated world ends this far beyond the walls; positions are clamped to it so
+that drones of the nominal game, which may leave the room, keep bounded observations."""
+
+AGENTS: tuple[str, ...] = ("drone_0", "drone_1")
+N_DRONES: int = len(AGENTS)
+
+# Per-drone colours (tab10 blue, orange), as in the grid world's plots.
+DRONE_COLOURS: tuple[str, ...] = ("#1f77b4", "#ff7f0e")
+
+_OBSTACLE_ARRAY = np.asarray(OBSTACLES, dtype=np.float64)  # [K, 4]
+_DOOR_ARRAY = np.asarray(DOORS, dtype=np.float64)  # [N, 2]
+
+
+def door_centres() -> np.ndarray:
+    """``[N, 2]`` float64: the centre of each drone's door (on the top wall)."""
+    return np.stack([_DOOR_ARRAY.mean(1), np.full(N_DRONES, ROOM_SIZE)], axis=1)
+
+
+def obstacle_cell_mask() -> np.ndarray:
+    """``[GRID_CELLS**2]`` bool: cells overlapping an obstacle with positive area."""
+    ix, iy = np.meshgrid(np.arange(GRID_CELLS), np.arange(GRID_CELLS), indexing="xy")
+    x0, y0 = ix.ravel() * CELL_SIZE, iy.ravel() * CELL_SIZE  # index iy * G + ix
+    o = _OBSTACLE_ARRAY
+    hit = ((x0[:, None] < o[:, 2]) & (x0[:, None] + CELL_SIZE > o[:, 0])
+           & (y0[:, None] < o[:, 3]) & (y0[:, None] + CELL_SIZE > o[:, 1]))
+    return hit.any(1)
+
+
+# ------------------------------------------------------- array-agnostic tiny helpers
+# The game transition must run on numpy arrays (the env) and torch tensors (a batched
+# solver) alike; these few helpers are all that differs between the two.
+def _is_torch(x: Any) -> bool:
+    return isinstance(x, torch.Tensor)
+
+
+def _const(value: Any, like: Any) -> Any:
+    if _is_torch(like):
+        return torch.as_tensor(value, dtype=like.dtype, device=like.device)
+    return np.asarray(value, dtype=like.dtype)
+
+
+def _clip(x: Any, lo: float, hi: float) -> Any:
+    return x.clamp(lo, hi) if _is_torch(x) else np.clip(x, lo, hi)
+
+
+def _where(cond: Any, a: Any, b: Any) -> Any:
+    return torch.where(cond, a, b) if _is_torch(cond) else np.where(cond, a, b)
+
+
+def _cat(parts: Sequence[Any]) -> Any:
+    return torch.cat(list(parts), -1) if _is_torch(parts[0]) else np.concatenate(parts, -1)
+
+
+# ----------------------------------------------------------------- constraint checks
+def in_obstacle(pos: Any) -> Any:
+    """Whether positions lie in an obstacle box (closed boxes).
+
+    Args:
+        pos: ``[..., 2]`` positions ``(x, y)``, numpy or torch.
+
+    Returns:
+        ``[...]`` bool of the same array type.
+    """
+    o = _const(_OBSTACLE_ARRAY, pos)
+    x, y = pos[..., 0:1], pos[..., 1:2]  # [..., 1] against [K]
+    return ((x >= o[:, 0]) & (x <= o[:, 2]) & (y >= o[:, 1]) & (y <= o[:, 3])).any(-1)
+
+
+def in_own_door(pos: Any) -> Any:
+    """Whether each drone is in the mouth of its own door.
+
+    Args:
+        pos: ``[..., N, 2]`` positions of the ``N = 2`` drones.
+
+    Returns:
+        ``[..., N]`` bool.
+    """
+    d = _const(_DOOR_ARRAY, pos)
+    x, y = pos[..., 0], pos[..., 1]
+    return (x >= d[:, 0]) & (x <= d[:, 1]) & (y >= ROOM_SIZE - DOOR_DEPTH)
+
+
+def outside_room(pos: Any) -> Any:
+    """``[...]`` bool: positions ``[..., 2]`` outside the room ``[0, ROOM_SIZE]^2``."""
+    return ((pos < 0.0) | (pos > ROOM_SIZE)).any(-1)
+
+
+def too_close(pos: Any, radius: float = PROXIMITY_RADIUS) -> Any:
+    """``[...]`` bool: the two drones of ``pos [..., 2, 2]`` are closer than ``radius``."""
+    diff = pos[..., 0, :] - pos[..., 1, :]
+    return (diff * diff).sum(-1) < radius * radius
+
+
+# ------------------------------------------------------------------------- dynamics
+def _check_positive(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise ValueError(f"{name} must be a positive number, got {value!r}.")
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}.")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class DroneDynamics:
+    """First-order velocity response of one planar drone, vectorised.
+
+    Args:
+        dt: time step in seconds.
+        tau: time constant of the velocity response in seconds; ``dt <= tau`` so the
+            Euler update does not overshoot.
+        max_speed: speed per axis (m/s) commanded by ``u = ±1``.
+        noise_std: standard deviation (m/s) of the Gaussian velocity noise per step.
+        vel_limit: hard bound on each velocity component (m/s); default
+            ``1.5 * max_speed`` (noise can push slightly past the commanded speed).
+    """
+
+    dt: float = 0.1
+    tau: float = 0.3
+    max_speed: float = 1.0
+    noise_std: float = 0.02
+    vel_limit: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("dt", "tau", "max_speed"):
+            object.__setattr__(self, name, _check_positive(name, getattr(self, name)))
+        if isinstance(self.noise_std, bool) or not np.isfinite(self.noise_std) \
+                or self.noise_std < 0:
+            raise ValueError(f"noise_std must be a finite number >= 0, got {self.noise_std!r}.")
+        object.__setattr__(self, "noise_std", float(self.noise_std))
+        if self.dt > self.tau:
+            raise ValueError(
+                f"dt={self.dt} exceeds tau={self.tau}: the first-order update would "
+                f"overshoot the command; use dt <= tau."
+            )
+        limit = 1.5 * self.max_speed if self.vel_limit is None else self.vel_limit
+        limit = _check_positive("vel_limit", limit)
+        if limit < self.max_speed:
+            raise ValueError(
+                f"vel_limit={limit} is below max_speed={self.max_speed}; the commanded "
+                f"speed must be reachable: use vel_limit >= max_speed."
+            )
+        object.__setattr__(self, "vel_limit", limit)
+
+    def step(self, pos: Any, vel: Any, command: Any, noise: Any = None) -> tuple[Any, Any]:
+        """One step of the dynamics; pure and batched (numpy or torch).
+
+        Args:
+            pos: ``[..., 2]`` positions (m).
+            vel: ``[..., 2]`` velocities (m/s).
+            command: ``[..., 2]`` velocity commands, clipped to ``[-1, 1]``.
+            noise: ``[..., 2]`` velocity noise (m/s) already scaled, e.g.
+                ``noise_std * rng.standard_normal(...)``; None for none.
+
+        Returns:
+            ``(pos', vel')``, each ``[..., 2]``; positions clamped to the world box.
+        """
+        u = _clip(command, -1.0, 1.0) * self.max_speed
+        vel = vel + (self.dt / self.tau) * (u - vel)
+        if noise is not None:
+            vel = vel + noise
+        vel = _clip(vel, -self.vel_limit, self.vel_limit)
+        pos = _clip(pos + self.dt * vel, -WORLD_MARGIN, ROOM_SIZE + WORLD_MARGIN)
+        return pos, vel
+
+    def sample_noise(self, rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+        """``shape`` float64 velocity noise from ``rng``."""
+        return self.noise_std * rng.standard_normal(shape)
+
+
+@dataclass(frozen=True)
+class JointStep:
+    """Result of :func:`joint_step`; every field is numpy or torch like the input.
+
+    Attributes:
+        state: ``[..., N, 4]`` next positions and velocities.
+        active: ``[..., N]`` bool, drones still flying after the step.
+        violated: ``[..., N]`` bool, a true constraint was violated in this step.
+        reached: ``[..., N]`` bool, the drone arrived at its own door in this step
+            (in the true game only without a violation).
+        collision: ``[...]`` bool, the two active drones came too close.
+        in_obstacle: ``[..., N]`` bool, an active drone is inside an obstacle.
+        out_of_room: ``[..., N]`` bool, an active drone left the room, not via its door.
+    """
+
+    state: Any
+    active: Any
+    violated: Any
+    reached: Any
+    collision: Any
+    in_obstacle: Any
+    out_of_room: Any
+
+
+def joint_step(
+    state: Any,
+    command: Any,
+    active: Any,
+    noise: Any = None,
+    *,
+    dynamics: DroneDynamics,
+    proximity_radius: float = PROXIMITY_RADIUS,
+    constrained: bool = True,
+) -> JointStep:
+    """One transition of the drone game; pure and batched (numpy or torch).
+
+    Inactive drones (arrived or frozen) neither move nor collide. A drone that stops in
+    this step (arrival, or a violation in the true game) comes to rest: velocity 0.
+
+    Args:
+        state: ``[..., N, 4]`` positions ``(x, y)`` and velocities ``(vx, vy)``.
+        command: ``[..., N, 2]`` velocity commands in ``[-1, 1]`` (clipped).
+        active: ``[..., N]`` bool, which drones are still flying.
+        noise: ``[..., N, 2]`` velocity noise or None.
+        dynamics: the drone dynamics.
+        proximity_radius: collision distance (m).
+        constrained: True for the true game (violators freeze), False for the nominal.
+
+    Returns:
+        The :class:`JointStep`.
+    """
+    pos, vel = state[..., :2], state[..., 2:]
+    new_pos, new_vel = dynamics.step(pos, vel, command, noise)
+    keep = active[..., None]
+    new_pos = _where(keep, new_pos, pos)
+    new_vel = _where(keep, new_vel, vel)
+    at_door = in_own_door(new_pos) & active
+    obstacle = in_obstacle(new_pos) & active
+    out = outside_room(new_pos) & ~at_door & active
+    collision = too_close(new_pos, proximity_radius) & active[..., 0] & active[..., 1]
+    violated = obstacle | out | collision[..., None]
+    if constrained:
+        reached = at_door & ~violated
+        stop = violated | at_door
+    else:
+        reached = at_door
+        stop = at_door
+    new_vel = _where(stop[..., None], new_vel * 0.0, new_vel)
+    return JointStep(
+        state=_cat([new_pos, new_vel]), active=active & ~stop, violated=violated,
+        reached=reached, collision=collision, in_obstacle=obstacle, out_of_room=out,
+    )
+
+
+# -------------------------------------------------------------------------- the env
+class DroneArena(ParallelEnv):
+    """Two drones crossing a 10 m room; the true game or its nominal game.
+
+    Observation of drone ``i`` (float32, 10 values): own position and velocity, the
+    other drone's position and velocity, own door centre. Action: ``[2]`` float32
+    velocity command in ``[-1, 1]^2``. Reward: 1 in the step a drone reaches its door
+    without a violation, else 0 (the learner brings its own reward; DESIGN §7).
+
+    ``infos[agent]`` has ``violated``, ``reached``, ``collision`` (this step),
+    ``in_obstacle``, ``out_of_room`` and ``position`` (``[2]`` float64). An agent leaves
+    ``agents`` (terminated) when it reaches its door or, in the true game, violates; all
+    are truncated after ``max_steps``. The random stream (start jitter, noise) depends
+    only on the seed: every step draws noise for both drones, flying or not.
+
+    Args:
+        constrained: True for the true game (violators freeze), False for the nominal.
+        max_steps: episode limit in steps (default 300, i.e. 30 s at dt = 0.1).
+        dynamics: the drone dynamics (default :class:`DroneDynamics()`).
+        proximity_radius: collision distance in metres.
+        render_mode: None or ``"rgb_array"``.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "name": "drone_arena_v0",
+                "is_parallelizable": True, "render_fps": 10}
+
+    def __init__(
+        self,
+        *,
+        constrained: bool = True,
+        max_steps: int = 300,
+        dynamics: DroneDynamics | None = None,
+        proximity_radius: float = PROXIMITY_RADIUS,
+        render_mode: str | None = None,
+    ) -> None:
+        if not isinstance(constrained, bool | np.bool_):
+            raise ValueError(
+                f"constrained must be a bool (True: true game, False: nominal game), "
+                f"got {constrained!r}."
+            )
+        if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) \
+                or max_steps < 1:
+            raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
+        if dynamics is None:
+            dynamics = DroneDynamics()
+        if not isinstance(dynamics, DroneDynamics):
+            raise ValueError(
+                f"dynamics must be a DroneDynamics, got {type(dynamics).__name__}; build "
+                f"one with DroneDynamics(dt=..., tau=...)."
+            )
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode must be None or one of {self.metadata['render_modes']}, "
+                f"got {render_mode!r}."
+            )
+        self.constrained = bool(constrained)
+        self.max_steps = int(max_steps)
+        self.dynamics = dynamics
+        self.proximity_radius = _check_positive("proximity_radius", proximity_radius)
+        self.render_mode = render_mode
+        self.possible_agents = list(AGENTS)
+        self._index = {a: i for i, a in enumerate(self.possible_agents)}
+        v = dynamics.vel_limit
+        lo, hi = -WORLD_MARGIN, ROOM_SIZE + WORLD_MARGIN
+        self._obs_low = np.array([lo, lo, -v, -v] * 2 + [0.0, 0.0], dtype=np.float32)
+        self._obs_high = np.array([hi, hi, v, v] * 2 + [ROOM_SIZE] * 2, dtype=np.float32)
+        self.state_space = spaces.Box(
+            low=np.tile(np.array([lo, lo, -v, -v]), (N_DRONES, 1)),
+            high=np.tile(np.array([hi, hi, v, v]), (N_DRONES, 1)), dtype=np.float64,
+        )
+        self._doors = door_centres()
+
+        self.agents: list[str] = []
+        self.timestep = 0
+        self._state: np.ndarray | None = None  # [N, 4] float64
+        self._active = np.zeros(N_DRONES, dtype=bool)
+        self.violated = np.zeros(N_DRONES, dtype=bool)  # ever violated, this episode
+        self.reached = np.zeros(N_DRONES, dtype=bool)  # reached the door, this episode
+        self._history: list[np.ndarray] = []  # positions [N, 2] per time step
+        self._overlay: np.ndarray | None = None
+        self._rng: np.random.Generator | None = None
+
+    # ---- spaces -------------------------------------------------------------------
+    # PettingZoo requires the same space object on every call (see gridworld_env).
+    @functools.cache  # noqa: B019
+    def observation_space(self, agent: str) -> spaces.Box:
+        self._agent_index(agent)
+        return spaces.Box(low=self._obs_low, high=self._obs_high, dtype=np.float32)
+
+    @functools.cache  # noqa: B019
+    def action_space(self, agent: str) -> spaces.Box:
+        self._agent_index(agent)
+        return spaces.Box(low=-1.0, high=1.0, shape=(2,), dtype=np.float32)
+
+    # ---- episode ------------------------------------------------------------------
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
+        """Start an episode; ``options={"positions": [[x0, y0], [x1, y1]]}`` sets the
+        start positions instead of the jittered nominal ones (other keys are ignored)."""
+        # Like gymnasium: reseed only when asked, so successive episodes differ.
+        if seed is not None or self._rng is None:
+            self._rng = np.random.default_rng(seed)
+        jitter = self._rng.uniform(-START_JITTER, START_JITTER, size=(N_DRONES, 2))
+        pos = np.asarray(NOMINAL_STARTS, dtype=np.float64) + jitter
+        if options and options.get("positions") is not None:
+            pos = _check_start_positions(options["positions"])
+        self._state = np.concatenate([pos, np.zeros((N_DRONES, 2))], axis=1)
+        self._active = np.ones(N_DRONES, dtype=bool)
+        self.violated = np.zeros(N_DRONES, dtype=bool)
+        self.reached = np.zeros(N_DRONES, dtype=bool)
+        self.timestep = 0
+        self._history = [pos.copy()]
+        self.agents = list(self.possible_agents)
+        obs = {a: self.observe(a) for a in self.agents}
+        infos = {a: self._info(i, False, False, False, False, False)
+                 for a, i in self._index.items()}
+        return obs, infos
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        """Advance one step. ``actions`` must hold a ``[2]`` command for every agent in
+        ``agents``; actions of agents that are already done are ignored."""
+        if self._state is None:
+            raise RuntimeError("step() called before reset(); call env.reset(seed=...) first.")
+        if not self.agents:  # PettingZoo convention: stepping a finished episode is a no-op
+            return {}, {}, {}, {}, {}
+        live = list(self.agents)
+        command = self._check_actions(actions, live)
+        noise = self.dynamics.sample_noise(self._rng, (N_DRONES, 2))
+        res = joint_step(self._state, command, self._active, noise, dynamics=self.dynamics,
+                         proximity_radius=self.proximity_radius, constrained=self.constrained)
+        self._state, self._active = res.state, res.active
+        self.violated |= res.violated
+        self.reached |= res.reached
+        self.timestep += 1
+        self._history.append(self._state[:, :2].copy())
+
+        obs, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
+        for a in live:
+            i = self._index[a]
+            obs[a] = self.observe(a)
+            rewards[a] = float(res.reached[i] and not self.violated[i])
+            terms[a] = not bool(res.active[i])
+            truncs[a] = not terms[a] and self.timestep >= self.max_steps
+            infos[a] = self._info(i, bool(res.violated[i]), bool(res.reached[i]),
+                                  bool(res.collision), bool(res.in_obstacle[i]),
+                                  bool(res.out_of_room[i]))
+        self.agents = [a for a in live if not (terms[a] or truncs[a])]
+        return obs, rewards, terms, truncs, infos
+
+    def observe(self, agent: str) -> np.ndarray:
+        """``[10]`` float32 observation of ``agent`` (also for agents that are done)."""
+        i = self._agent_index(agent)
+        if self._state is None:
+            raise RuntimeError("observe() called before reset(); call env.reset() first.")
+        j = 1 - i
+        o = np.concatenate([self._state[i], self._state[j], self._doors[i]])
+        # The dynamics keep o inside the bounds; the clip only absorbs float32 rounding.
+        return np.clip(o.astype(np.float32), self._obs_low, self._obs_high)
+
+    def state(self) -> np.ndarray:
+        """``[N, 4]`` float64 positions and velocities (done drones where they stopped)."""
+        if self._state is None:
+            raise RuntimeError("state() called before reset(); call env.reset() first.")
+        return self._state.copy()
+
+    @property
+    def active(self) -> np.ndarray:
+        """``[N]`` bool: drones still flying."""
+        return self._active.copy()
+
+    def trajectory(self) -> np.ndarray:
+        """``[t+1, N, 2]`` float64 positions since the last reset."""
+        return np.stack(self._history) if self._history else np.zeros((0, N_DRONES, 2))
+
+    # ---- rendering ----------------------------------------------------------------
+    def set_constraint_overlay(self, cells: Any) -> None:
+        """Cells to draw as (learned) constraints in :meth:`render`; see
+        :func:`render_arena` for the accepted forms. ``None`` clears the overlay."""
+        self._overlay = None if cells is None else constraint_cell_mask(cells)
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            logger.warn("render() called with render_mode=None; pass render_mode='rgb_array'.")
+            return None
+        title = f"{self.metadata['name']}  t={self.timestep}/{self.max_steps}" + (
+            "" if self.constrained else "  (nominal)")
+        traj = self.trajectory() if self._history else None
+        return render_arena(
+            trajectories=None if traj is None else [traj],
+            positions=None if self._state is None else self._state[:, :2],
+            frozen=self.violated & ~self._active if self.constrained else None,
+            constraint_cells=self._overlay, proximity_radius=self.proximity_radius,
+            title=title,
+        )
+
+    def close(self) -> None:
+        pass
+
+    # ---- helpers ------------------------------------------------------------------
+    def _info(self, i: int, violated: bool, reached: bool, collision: bool,
+              obstacle: bool, out: bool) -> dict[str, Any]:
+        return {"violated": violated, "reached": reached, "collision": collision,
+                "in_obstacle": obstacle, "out_of_room": out,
+                "position": self._state[i, :2].copy()}
+
+    def _agent_index(self, agent: str) -> int:
+        try:
+            return self._index[agent]
+        except (KeyError, TypeError):
+            raise ValueError(
+                f"Unknown agent {agent!r}; this env's agents are {self.possible_agents}."
+            ) from None
+
+    def _check_actions(self, actions: dict[str, Any], live: list[str]) -> np.ndarray:
+        missing = [a for a in live if a not in actions]
+        if missing:
+            raise ValueError(f"No action given for active agent(s) {missing}; give one each.")
+        command = np.zeros((N_DRONES, 2))
+        for agent, a in actions.items():
+            i = self._agent_index(agent)
+            if agent not in live:
+                continue
+            arr = np.asarray(a, dtype=np.float64) if _is_numeric(a) else None
+            if arr is None or arr.shape != (2,) or not np.all(np.isfinite(arr)):
+                raise ValueError(
+                    f"Action of {agent} must be a finite [2] velocity command in [-1, 1], "
+                    f"got {a!r}."
+                )
+            command[i] = np.clip(arr, -1.0, 1.0)
+        return command
+
+
+def _is_numeric(a: Any) -> bool:
+    try:
+        arr = np.asarray(a)
+    except (TypeError, ValueError):
+        return False
+    return np.issubdtype(arr.dtype, np.number) and not np.issubdtype(arr.dtype, np.complexfloating)
+
+
+def _check_start_positions(positions: Any) -> np.ndarray:
+    pos = np.asarray(positions, dtype=np.float64) if _is_numeric(positions) else None
+    if pos is None or pos.shape != (N_DRONES, 2) or not np.all(np.isfinite(pos)):
+        raise ValueError(
+            f"options['positions'] must be finite [{N_DRONES}, 2] start positions (x, y) in "
+            f"metres, got {positions!r}."
+        )
+    bad = outside_room(pos) | in_obstacle(pos) | in_own_door(pos)
+    if bad.any() or too_close(pos):
+        raise ValueError(
+            f"options['positions'] {pos.tolist()} must lie in the room, outside the "
+            f"obstacles {list(OBSTACLES)} and the doors, and {PROXIMITY_RADIUS} m apart."
+        )
+    return pos
+
+
+# ------------------------------------------------------------------ joint gym adapter
+RewardFn = Callable[[np.ndarray, np.ndarray, np.ndarray], float]
+
+
+def joint_obs_to_state(obs: Any) -> Any:
+    """Joint observations ``[..., 20]`` of :class:`JointDroneEnv` to states ``[..., 2, 4]``
+    (drone ``i``'s own position and velocity are its observation's first 4 values)."""
+    obs_dim = obs.shape[-1] // N_DRONES
+    parts = [obs[..., i * obs_dim:i * obs_dim + 4] for i in range(N_DRONES)]
+    return torch.stack(parts, -2) if _is_torch(obs) else np.stack(parts, -2)
+
+
+class JointDroneEnv(gym.Env):
+    """Both drones as one gymnasium agent, for single-policy solvers (e.g. SB3 SAC).
+
+    Observation: ``[20]`` float32, drone 0's observation then drone 1's. Action:
+    ``[4]`` float32 in ``[-1, 1]``, drone 0's command then drone 1's (a done drone's
+    part is ignored). Reward: ``reward_fn(obs, action, next_obs)`` or 0. Terminated
+    when no drone flies any more (all arrived or frozen); truncated at ``max_steps``.
+    ``info`` holds per-drone ``[2]`` bool arrays ``violated``, ``reached``, ``active``,
+    ``in_obstacle``, ``out_of_room``, the bool ``collision`` and the ``[2, 4]`` float64
+    ``state``.
+
+    Args:
+        reward_fn: ``(obs [20], action [4], next_obs [20]) -> float``, e.g. a learner's
+            linear reward on :func:`joint_obs_to_state` features; None gives 0.
+        **arena_kwargs: forwarded to :class:`DroneArena` (``constrained``,
+            ``max_steps``, ``dynamics``, ``proximity_radius``, ``render_mode``).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, *, reward_fn: RewardFn | None = None, **arena_kwargs: Any) -> None:
+        if reward_fn is not None and not callable(reward_fn):
+            raise ValueError(
+                f"reward_fn must be callable (obs, action, next_obs) -> float or None, got "
+                f"{type(reward_fn).__name__}."
+            )
+        self.arena = DroneArena(**arena_kwargs)
+        self.reward_fn = reward_fn
+        self.render_mode = self.arena.render_mode
+        single = self.arena.observation_space(AGENTS[0])
+        self.observation_space = spaces.Box(
+            low=np.tile(single.low, N_DRONES), high=np.tile(single.high, N_DRONES),
+            dtype=np.float32,
+        )
+        self.action_space = spaces.Box(low=-1.0, high=1.0, shape=(2 * N_DRONES,),
+                                       dtype=np.float32)
+        self._obs: np.ndarray | None = None
+
+    def _joint_obs(self) -> np.ndarray:
+        return np.concatenate([self.arena.observe(a) for a in AGENTS])
+
+    def _joint_info(self, infos: dict[str, dict[str, Any]]) -> dict[str, Any]:
+        def per(key: str) -> np.ndarray:
+            return np.array([bool(infos.get(a, {}).get(key, False)) for a in AGENTS])
+
+        return {"violated": per("violated"), "reached": per("reached"),
+                "in_obstacle": per("in_obstacle"), "out_of_room": per("out_of_room"),
+                "collision": bool(per("collision").any()), "active": self.arena.active,
+                "state": self.arena.state()}
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        _, infos = self.arena.reset(seed=seed, options=options)
+        self._obs = self._joint_obs()
+        return self._obs.copy(), self._joint_info(infos)
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self._obs is None:
+            raise RuntimeError("step() called before reset(); call env.reset(seed=...) first.")
+        if not self.arena.agents:
+            raise RuntimeError("The episode is over; call env.reset() before step().")
+        arr = np.asarray(action, dtype=np.float64) if _is_numeric(action) else None
+        if arr is None or arr.shape != (2 * N_DRONES,) or not np.all(np.isfinite(arr)):
+            raise ValueError(
+                f"action must be a finite [{2 * N_DRONES}] array in [-1, 1] (drone 0's "
+                f"command, then drone 1's), got {action!r}."
+            )
+        cmd = arr.reshape(N_DRONES, 2)
+        _, _, _, _, infos = self.arena.step(
+            {a: cmd[self.arena._index[a]] for a in self.arena.agents})
+        obs = self._joint_obs()
+        reward = 0.0 if self.reward_fn is None else float(self.reward_fn(self._obs, arr, obs))
+        terminated = not self.arena.active.any()
+        truncated = not terminated and self.arena.timestep >= self.arena.max_steps
+        self._obs = obs
+        return obs.copy(), reward, terminated, truncated, self._joint_info(infos)
+
+    def state(self) -> np.ndarray:
+        """``[2, 4]`` float64 positions and velocities."""
+        return self.arena.state()
+
+    def set_constraint_overlay(self, cells: Any) -> None:
+        """See :meth:`DroneArena.set_constraint_overlay`."""
+        self.arena.set_constraint_overlay(cells)
+
+    def render(self) -> np.ndarray | None:
+        return self.arena.render()
+
+    def close(self) -> None:
+        self.arena.close()
+
+
+# ------------------------------------------------------------------------- rendering
+def constraint_cell_mask(cells: Any) -> np.ndarray:
+    """Normalise a set of constraint cells to a ``[N, GRID_CELLS**2]`` bool mask.
+
+    Args:
+        cells: one of: an iterable of cell indices ``iy * GRID_CELLS + ix`` (shared by
+            both drones); a bool array ``[GRID_CELLS**2]`` (shared), ``[N,
+            GRID_CELLS**2]`` (per drone), or ``[N * GRID_CELLS**2 + 1]`` (a
+            :class:`~dicrl_torch.features.drone.CellOccupancyCostBasis` constraint mask;
+            its proximity entry is ignored).
+
+    Returns:
+        ``[N, GRID_CELLS**2]`` bool.
+    """
+    n = GRID_CELLS**2
+    if isinstance(cells, torch.Tensor):
+        cells = cells.detach().cpu().numpy()
+    arr = np.asarray(cells) if isinstance(cells, np.ndarray) else None
+    if arr is not None and arr.dtype == np.bool_:
+        if arr.shape == (n,):
+            return np.tile(arr, (N_DRONES, 1))
+        if arr.shape == (N_DRONES, n):
+            return arr.copy()
+        if arr.shape == (N_DRONES * n + 1,):
+            return arr[:-1].reshape(N_DRONES, n).copy()
+        raise ValueError(
+            f"A boolean constraint mask must have shape [{n}], [{N_DRONES}, {n}] or "
+            f"[{N_DRONES * n + 1}], got {list(arr.shape)}."
+        )
+    if not isinstance(cells, Iterable):
+        raise ValueError(
+            f"cells must be cell indices or a boolean mask, got {type(cells).__name__}."
+        )
+    idx = [c for c in cells]
+    bad = [c for c in idx if isinstance(c, bool) or not isinstance(c, int | np.integer)
+           or not 0 <= c < n]
+    if bad:
+        raise ValueError(
+            f"Constraint cells must be ints in [0, {n}) (index iy * {GRID_CELLS} + ix), "
+            f"got {bad[:5]}."
+        )
+    mask = np.zeros((N_DRONES, n), dtype=bool)
+    mask[:, [int(c) for c in idx]] = True
+    return mask
+
+
+def render_arena(
+    *,
+    trajectories: Sequence[np.ndarray] | None = None,
+    positions: np.ndarray | None = None,
+    frozen: np.ndarray | None = None,
+    constraint_cells: Any = None,
+    proximity_radius: float = PROXIMITY_RADIUS,
+    title: str = "",
+) -> np.ndarray:
+    """Draw the arena and return it as an ``H x W x 3`` uint8 image (320 x 320).
+
+    Walls are black with each door a thick segment in its drone's colour, obstacles dark
+    grey, constraint cells shaded in the drone's colour (both drones: red). Uses a
+    private Agg canvas, never pyplot's global state.
+
+    Args:
+        trajectories: arrays ``[T, N, 2]`` of positions, e.g. one per demonstrated pair.
+        positions: ``[N, 2]`` current positions, drawn as discs of radius
+            ``proximity_radius / 2`` (they touch exactly at a collision).
+        frozen: ``[N]`` bool, drones drawn with a black cross (frozen by a violation).
+        constraint_cells: see :func:`constraint_cell_mask`; None draws none.
+        proximity_radius: collision distance in metres.
+        title: figure title.
+
+    Returns:
+        The RGB image.
+    """
+    fig = Figure(figsize=(4.0, 4.0), dpi=80)
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    if constraint_cells is not None:
+        mask = constraint_cell_mask(constraint_cells)
+        both = mask.all(0)
+        for c in range(GRID_CELLS**2):
+            if not mask[:, c].any():
+                continue
+            colour = "red" if both[c] else DRONE_COLOURS[int(np.argmax(mask[:, c]))]
+            ix, iy = c % GRID_CELLS, c // GRID_CELLS
+            corner = (ix * CELL_SIZE, iy * CELL_SIZE)
+            # Shaded and hatched above the obstacles, so a learned constraint on an
+            # obstacle cell (the hoped-for result) stays visible.
+            ax.add_patch(Rectangle(corner, CELL_SIZE, CELL_SIZE, color=colour, alpha=0.35,
+                                   lw=0, zorder=2))
+            ax.add_patch(Rectangle(corner, CELL_SIZE, CELL_SIZE, fill=False, hatch="xx",
+                                   ec=colour, lw=0, zorder=2))
+    for x0, y0, x1, y1 in OBSTACLES:
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, color="0.35", zorder=1))
+    # Walls, with the doors cut out of the top wall and drawn in the drones' colours.
+    ax.plot([0, 0, ROOM_SIZE, ROOM_SIZE], [ROOM_SIZE, 0, 0, ROOM_SIZE], color="k", lw=2)
+    edges = sorted([0.0, ROOM_SIZE] + [v for d in DOORS for v in d])
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        ax.plot([a, b], [ROOM_SIZE, ROOM_SIZE], color="k", lw=2)
+    for i, (a, b) in enumerate(DOORS):
+        ax.plot([a, b], [ROOM_SIZE, ROOM_SIZE], color=DRONE_COLOURS[i], lw=5, zorder=3)
+    for i, (sx, sy) in enumerate(NOMINAL_STARTS):
+        ax.plot(sx, sy, "o", ms=12, mfc="none", mec=DRONE_COLOURS[i], mew=1.5, zorder=3)
+    for traj in trajectories or []:
+        t = np.asarray(traj, dtype=np.float64)
+        if t.ndim != 3 or t.shape[1:] != (N_DRONES, 2):
+            raise ValueError(
+                f"Each trajectory must have shape [T, {N_DRONES}, 2], got {list(t.shape)}."
+            )
+        for i in range(N_DRONES):
+            ax.plot(t[:, i, 0], t[:, i, 1], color=DRONE_COLOURS[i], lw=1.0, alpha=0.8,
+                    zorder=4)
+    if positions is not None:
+        p = np.asarray(positions, dtype=np.float64)
+        if p.shape != (N_DRONES, 2):
+            raise ValueError(f"positions must have shape [{N_DRONES}, 2], got {list(p.shape)}.")
+        for i in range(N_DRONES):
+            ax.add_patch(Circle(tuple(p[i]), proximity_radius / 2, color=DRONE_COLOURS[i],
+                                ec="k", zorder=5))
+            if frozen is not None and bool(np.asarray(frozen)[i]):
+                ax.plot(*p[i], "x", color="k", ms=9, mew=2, zorder=6)
+    ax.set_xlim(-0.3, ROOM_SIZE + 0.3)
+    ax.set_ylim(-0.3, ROOM_SIZE + 0.3)
+    ticks = np.arange(GRID_CELLS + 1) * CELL_SIZE
+    ax.set_xticks(ticks)
+    ax.set_yticks(ticks)
+    ax.grid(color="0.85", lw=0.5)
+    ax.tick_params(length=0, labelsize=6)
+    ax.set_aspect("equal")
+    if title:
+        ax.set_title(title, fontsize=8)
+    fig.tight_layout()
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()

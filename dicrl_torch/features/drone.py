@@ -1,0 +1,318 @@
+"""Fixed feature bases of the drone arena (DESIGN §7, paper §6.2).
+
+A basis is an ``nn.Module`` without trainable parameters mapping batched joint states
+``[..., 2, 4]`` (positions ``x, y`` and velocities of the two drones; optionally the
+commands ``[..., 2, 2]``, unused by the bases here) to features ``[..., l]`` in
+``[0, max_value]`` (the paper's ``φ ∈ [0, d]^l``), checked on every call. All of them
+are functions of the state only, so they can be evaluated on solver rollouts and on
+demonstrations alike, on numpy or torch input, CPU or GPU.
+
+Cost bases (``true_constraints()`` gives the ground-truth constraint set ``[l]`` bool):
+
+- :class:`CellOccupancyCostBasis` (default): per drone a one-hot of its 1 m cell of the
+  10 x 10 grid, plus one shared proximity indicator: ``l = 2 * 100 + 1 = 201``.
+- :class:`RBFCostBasis`: per drone Gaussian bumps centred on an ``n x n`` grid, plus a
+  smooth proximity bump: ``l = 2 n^2 + 1``.
+
+Reward bases:
+
+- :class:`DoorLocationRewardBasis` (default): per drone its position projected on the
+  direction of its door and its closeness to the door: ``l = 4``.
+- :class:`FourierRewardBasis`: per drone a cosine basis of its position:
+  ``l = 2 (order + 1)^2``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from dicrl_torch.envs.drones import (
+    CELL_SIZE,
+    GRID_CELLS,
+    N_DRONES,
+    NOMINAL_STARTS,
+    PROXIMITY_RADIUS,
+    ROOM_SIZE,
+    door_centres,
+    in_obstacle,
+    obstacle_cell_mask,
+)
+
+
+def _positive(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating) \
+            or not np.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}.")
+    return float(value)
+
+
+def _positive_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        raise ValueError(f"{name} must be a positive int, got {value!r}.")
+    return int(value)
+
+
+class DroneFeatureBasis(nn.Module):
+    """Base class of the drone bases.
+
+    Subclasses set ``self.names`` (one label per feature) and ``self.max_value``,
+    register their constants as (non-persistent) buffers and implement
+    :meth:`compute`. ``forward`` checks the input and that the output lies in
+    ``[0, max_value]``.
+    """
+
+    max_value: float = 1.0
+    names: list[str]
+
+    @property
+    def dim(self) -> int:
+        """Number of features ``l``."""
+        return len(self.names)
+
+    def compute(self, states: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def forward(self, states: Any, actions: Any = None) -> torch.Tensor:
+        """Features of joint states.
+
+        Args:
+            states: ``[..., 2, 4]`` float positions and velocities (numpy or torch).
+            actions: optional ``[..., 2, 2]`` commands; checked, unused (state features).
+
+        Returns:
+            ``[..., l]`` features in the dtype of ``states`` (float64 for numpy input).
+
+        Raises:
+            ValueError: malformed input, or features outside ``[0, max_value]``.
+        """
+        states = self._check(states, "states", 4)
+        if actions is not None:
+            actions = self._check(actions, "actions", 2)
+            if actions.shape[:-1] != states.shape[:-1]:
+                raise ValueError(
+                    f"{type(self).__name__}: actions of shape {tuple(actions.shape)} do not "
+                    f"match states of shape {tuple(states.shape)}; give [..., {N_DRONES}, 2]."
+                )
+        phi = self.compute(states)
+        self._validate(phi, states.shape[:-2])
+        return phi
+
+    def _check(self, x: Any, name: str, width: int) -> torch.Tensor:
+        if not isinstance(x, torch.Tensor):
+            a = np.asarray(x)
+            if not np.issubdtype(a.dtype, np.floating):
+                raise ValueError(
+                    f"{type(self).__name__}: {name} must be a float array, got dtype "
+                    f"{a.dtype}; convert with .astype(np.float64)."
+                )
+            # torch cannot wrap a read-only array (e.g. DroneDemonstrations fields): copy.
+            x = torch.from_numpy(a if a.flags.writeable else a.copy())
+        if not x.is_floating_point():
+            raise ValueError(
+                f"{type(self).__name__}: {name} must be a float tensor, got dtype {x.dtype}; "
+                f"convert with .double()."
+            )
+        if x.ndim < 2 or tuple(x.shape[-2:]) != (N_DRONES, width):
+            raise ValueError(
+                f"{type(self).__name__}: {name} must have shape [..., {N_DRONES}, {width}], "
+                f"got {tuple(x.shape)}."
+            )
+        if not torch.isfinite(x).all():
+            raise ValueError(f"{type(self).__name__}: {name} contain NaN or inf values.")
+        buf = next(self.buffers(), None)
+        return x if buf is None else x.to(buf.device)
+
+    def _validate(self, phi: torch.Tensor, batch: torch.Size) -> None:
+        if tuple(phi.shape) != (*batch, self.dim):
+            raise ValueError(
+                f"{type(self).__name__} produced features of shape {tuple(phi.shape)}, "
+                f"expected {(*batch, self.dim)}."
+            )
+        if phi.numel() == 0:
+            return
+        lo, hi = float(phi.min()), float(phi.max())
+        if not (np.isfinite(lo) and np.isfinite(hi)) or lo < 0 or hi > self.max_value + 1e-9:
+            raise ValueError(
+                f"{type(self).__name__} features leave [0, {self.max_value}] (min {lo:.3g}, "
+                f"max {hi:.3g}); the paper assumes bounded non-negative features "
+                f"(φ ∈ [0, d]^l): rescale the basis or raise its max_value."
+            )
+
+
+def _proximity_indicator(pos: torch.Tensor, radius: float) -> torch.Tensor:
+    """``[..., 1]`` 1.0 where the drones of ``pos [..., 2, 2]`` are closer than ``radius``."""
+    diff = pos[..., 0, :] - pos[..., 1, :]
+    return ((diff * diff).sum(-1, keepdim=True) < radius * radius).to(pos.dtype)
+
+
+# -------------------------------------------------------------------------- cost bases
+class CellOccupancyCostBasis(DroneFeatureBasis):
+    """Per drone a one-hot of its grid cell, plus a shared proximity indicator.
+
+    Feature ``i * 100 + iy * 10 + ix`` is 1 when drone ``i`` is in cell ``(ix, iy)``
+    (``[ix, ix+1) x [iy, iy+1)`` metres; positions outside the room count in the nearest
+    border cell); the last feature is 1 when the drones are closer than
+    ``proximity_radius``. ``l = 201``, values in ``{0, 1}``, ``max_value = 1``.
+
+    Args:
+        proximity_radius: distance (m) below which the proximity feature fires; the
+            env's collision radius by default.
+    """
+
+    def __init__(self, proximity_radius: float = PROXIMITY_RADIUS) -> None:
+        super().__init__()
+        self.proximity_radius = _positive("proximity_radius", proximity_radius)
+        G = GRID_CELLS
+        self.names = [f"drone{i}/cell({c % G},{c // G})" for i in range(N_DRONES)
+                      for c in range(G * G)] + ["proximity"]
+        self.max_value = 1.0
+        # A buffer only to follow .to(device); it carries no state worth saving.
+        self.register_buffer("_offsets", torch.arange(N_DRONES) * G * G, persistent=False)
+
+    def compute(self, states: torch.Tensor) -> torch.Tensor:
+        G = GRID_CELLS
+        pos = states[..., :2]
+        ixy = torch.floor(pos / CELL_SIZE).clamp(0, G - 1).long()  # [..., 2, 2]
+        cell = ixy[..., 1] * G + ixy[..., 0] + self._offsets  # [..., 2] in the whole block
+        onehot = torch.zeros((*states.shape[:-2], N_DRONES * G * G), dtype=states.dtype,
+                             device=states.device)
+        onehot.scatter_(-1, cell, 1.0)
+        return torch.cat([onehot, _proximity_indicator(pos, self.proximity_radius)], -1)
+
+    def true_constraints(self) -> torch.Tensor:
+        """``[201]`` bool: for each drone the cells overlapping an obstacle, and the
+        proximity feature."""
+        cells = torch.from_numpy(obstacle_cell_mask())
+        return torch.cat([cells.repeat(N_DRONES), torch.tensor([True])])
+
+    def true_weights(self) -> torch.Tensor:
+        """Ground-truth ``ω_cE`` in ``[0, 1]^l``: 1 on true constraints."""
+        return self.true_constraints().to(torch.float64)
+
+
+class RBFCostBasis(DroneFeatureBasis):
+    """A smooth cost basis: per drone Gaussian bumps on an ``n x n`` grid of centres,
+    plus a Gaussian proximity bump.
+
+    Feature ``i * n^2 + ky * n + kx`` is ``exp(-|p_i - c|^2 / (2 width^2))`` with centre
+    ``c = ((kx + 0.5) 10/n, (ky + 0.5) 10/n)``; the last is
+    ``exp(-|p_0 - p_1|^2 / (2 r^2))``. ``l = 2 n^2 + 1``, values in ``(0, 1]``. With the
+    default ``n = 10`` the centres are the cell centres of
+    :class:`CellOccupancyCostBasis`, so the two bases share the true constraint set.
+
+    Args:
+        n_per_axis: centres per axis ``n``.
+        width: bump width (m); default half the centre spacing.
+        proximity_radius: width ``r`` (m) of the proximity bump.
+    """
+
+    def __init__(self, n_per_axis: int = GRID_CELLS, width: float | None = None,
+                 proximity_radius: float = PROXIMITY_RADIUS) -> None:
+        super().__init__()
+        n = _positive_int("n_per_axis", n_per_axis)
+        spacing = ROOM_SIZE / n
+        self.width = _positive("width", 0.5 * spacing if width is None else width)
+        self.proximity_radius = _positive("proximity_radius", proximity_radius)
+        self.n_per_axis = n
+        k = (torch.arange(n, dtype=torch.float64) + 0.5) * spacing
+        cy, cx = torch.meshgrid(k, k, indexing="ij")  # index ky * n + kx
+        self.register_buffer("centres", torch.stack([cx.reshape(-1), cy.reshape(-1)], -1),
+                             persistent=False)
+        self.names = [f"drone{i}/rbf({kx},{ky})" for i in range(N_DRONES)
+                      for ky in range(n) for kx in range(n)] + ["proximity"]
+        self.max_value = 1.0
+
+    def compute(self, states: torch.Tensor) -> torch.Tensor:
+        pos = states[..., :2]
+        c = self.centres.to(states.dtype)
+        d2 = ((pos.unsqueeze(-2) - c) ** 2).sum(-1)  # [..., 2, n^2]
+        bumps = torch.exp(-d2 / (2 * self.width**2)).flatten(-2)
+        diff = pos[..., 0, :] - pos[..., 1, :]
+        prox = torch.exp(-(diff * diff).sum(-1, keepdim=True) / (2 * self.proximity_radius**2))
+        return torch.cat([bumps, prox], -1)
+
+    def true_constraints(self) -> torch.Tensor:
+        """``[2 n^2 + 1]`` bool: for each drone the centres inside an obstacle, and the
+        proximity feature."""
+        inside = in_obstacle(self.centres.cpu())
+        return torch.cat([inside.repeat(N_DRONES), torch.tensor([True])])
+
+    def true_weights(self) -> torch.Tensor:
+        """Ground-truth ``ω_cE`` in ``[0, 1]^l``: 1 on true constraints."""
+        return self.true_constraints().to(torch.float64)
+
+
+# ------------------------------------------------------------------------ reward bases
+class DoorLocationRewardBasis(DroneFeatureBasis):
+    """Per drone its location times a coefficient, oriented towards its door (paper §6.2).
+
+    For drone ``i`` with nominal start ``s_i``, door centre ``g_i`` and
+    ``L_i = |g_i - s_i|``: ``progress = clip((p_i - s_i)·(g_i - s_i) / L_i^2, 0, 1)``
+    (the position projected on the unit vector towards the door, in units of the
+    route's length) and ``closeness = 1 - clip(|p_i - g_i| / (10 sqrt 2), 0, 1)``, both
+    times ``coefficient``. ``l = 4`` (drone 0's pair, then drone 1's), values in
+    ``[0, coefficient]``.
+
+    Args:
+        coefficient: the scale of the features, ``max_value``.
+    """
+
+    FEATURES = ("progress", "closeness")
+
+    def __init__(self, coefficient: float = 1.0) -> None:
+        super().__init__()
+        self.coefficient = _positive("coefficient", coefficient)
+        self.max_value = self.coefficient
+        self.names = [f"drone{i}/{f}" for i in range(N_DRONES) for f in self.FEATURES]
+        starts = torch.tensor(NOMINAL_STARTS, dtype=torch.float64)
+        doors = torch.from_numpy(door_centres())
+        self.register_buffer("starts", starts, persistent=False)
+        self.register_buffer("doors", doors, persistent=False)
+
+    def compute(self, states: torch.Tensor) -> torch.Tensor:
+        pos = states[..., :2]
+        s, g = self.starts.to(states.dtype), self.doors.to(states.dtype)
+        axis = g - s  # [2, 2]
+        progress = (((pos - s) * axis).sum(-1) / (axis * axis).sum(-1)).clamp(0.0, 1.0)
+        dist = torch.linalg.vector_norm(pos - g, dim=-1)
+        closeness = 1.0 - (dist / (ROOM_SIZE * np.sqrt(2.0))).clamp(0.0, 1.0)
+        return self.coefficient * torch.stack([progress, closeness], -1).flatten(-2)
+
+
+class FourierRewardBasis(DroneFeatureBasis):
+    """A smooth reward basis: per drone ``(1 + cos(π (kx x + ky y) / 10)) / 2`` for
+    ``kx, ky = 0..order``. ``l = 2 (order + 1)^2``, values in ``[0, 1]``.
+
+    Args:
+        order: highest frequency per axis.
+    """
+
+    def __init__(self, order: int = 2) -> None:
+        super().__init__()
+        order = _positive_int("order", order)
+        self.order = order
+        k = torch.arange(order + 1, dtype=torch.float64)
+        ky, kx = torch.meshgrid(k, k, indexing="ij")
+        self.register_buffer("freqs", torch.stack([kx.reshape(-1), ky.reshape(-1)], -1),
+                             persistent=False)
+        self.names = [f"drone{i}/cos({int(a)},{int(b)})" for i in range(N_DRONES)
+                      for b in range(order + 1) for a in range(order + 1)]
+        self.max_value = 1.0
+
+    def compute(self, states: torch.Tensor) -> torch.Tensor:
+        pos = states[..., :2]
+        arg = pos @ self.freqs.to(states.dtype).T * (np.pi / ROOM_SIZE)  # [..., 2, K]
+        return (0.5 * (1.0 + torch.cos(arg))).flatten(-2)
+
+
+__all__ = [
+    "CellOccupancyCostBasis",
+    "DoorLocationRewardBasis",
+    "DroneFeatureBasis",
+    "FourierRewardBasis",
+    "RBFCostBasis",
+]

@@ -1,0 +1,522 @@
+"""Tests of the drone arena, its demonstrations and feature bases (DESIGN §7)."""
+
+from __future__ import annotations
+
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+from pettingzoo.test import parallel_api_test, parallel_seed_test
+
+from dicrl_torch.demos.drone_demos import (
+    PAPER_DRONE_SPLIT,
+    DroneDemonstrations,
+    load_drone_demonstrations,
+    make_drone_demonstrations,
+    partition_drone_demonstrations,
+    path_clearance,
+    replay_pair,
+    save_drone_demonstrations,
+)
+from dicrl_torch.envs.drones import (
+    AGENTS,
+    DOOR_DEPTH,
+    GRID_CELLS,
+    NOMINAL_STARTS,
+    OBSTACLES,
+    PROXIMITY_RADIUS,
+    ROOM_SIZE,
+    START_JITTER,
+    DroneArena,
+    DroneDynamics,
+    JointDroneEnv,
+    in_obstacle,
+    joint_obs_to_state,
+    joint_step,
+    obstacle_cell_mask,
+    render_arena,
+)
+from dicrl_torch.features.drone import (
+    CellOccupancyCostBasis,
+    DoorLocationRewardBasis,
+    FourierRewardBasis,
+    RBFCostBasis,
+)
+
+torch.set_num_threads(1)
+D0, D1 = AGENTS
+
+
+def cell(ix: int, iy: int) -> int:
+    return iy * GRID_CELLS + ix
+
+
+def arena(positions, **kw) -> DroneArena:
+    """An env reset with seed 0 and the given start positions."""
+    env = DroneArena(**kw)
+    env.reset(seed=0, options={"positions": positions})
+    return env
+
+
+def fly(env: DroneArena, commands: dict, steps: int) -> list[dict]:
+    """Apply constant ``commands`` (to the agents still flying); return the infos."""
+    out = []
+    for _ in range(steps):
+        if not env.agents:
+            break
+        out.append(env.step({a: np.asarray(commands.get(a, (0.0, 0.0)), dtype=np.float32)
+                             for a in env.agents})[4])
+    return out
+
+
+# ---- PettingZoo / gymnasium API -----------------------------------------------------
+@pytest.mark.parametrize("constrained", [True, False])
+def test_parallel_api_and_seed(constrained):
+    env = DroneArena(constrained=constrained, max_steps=150)
+    with warnings.catch_warnings():  # the API test only warns on wrong dict keys
+        warnings.simplefilter("error", UserWarning)
+        parallel_api_test(env, num_cycles=200)
+    parallel_seed_test(lambda: DroneArena(constrained=constrained))
+
+
+def test_observations_stay_in_spaces():
+    env = DroneArena(constrained=False, max_steps=200)
+    obs, _ = env.reset(seed=3)
+    for a in env.agents:
+        env.action_space(a).seed(3)
+    while env.agents:
+        for a, o in obs.items():
+            assert o.dtype == np.float32 and env.observation_space(a).contains(o), (a, o)
+        assert env.state_space.contains(env.state())
+        obs = env.step({a: env.action_space(a).sample() for a in env.agents})[0]
+
+
+def test_joint_env_passes_checkers():
+    check_env(JointDroneEnv(), skip_render_check=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "no spec" notes, not failures
+        check_env(JointDroneEnv(render_mode="rgb_array"))
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    sb3_check_env(JointDroneEnv(), warn=True)
+
+
+def test_joint_env_reward_termination_and_state():
+    calls = []
+
+    def reward_fn(obs, action, next_obs):
+        calls.append((obs.shape, action.shape, next_obs.shape))
+        return float(joint_obs_to_state(next_obs)[0, 1])  # drone 0's height
+
+    env = JointDroneEnv(reward_fn=reward_fn, max_steps=400)
+    obs, info = env.reset(seed=1, options={"positions": [[8.75, 8.5], [1.25, 8.5]]})
+    np.testing.assert_allclose(joint_obs_to_state(obs), info["state"], atol=1e-6)
+    np.testing.assert_allclose(joint_obs_to_state(torch.as_tensor(obs)).numpy(),
+                               info["state"], atol=1e-6)
+    done = False
+    while not done:  # both fly straight up through their doors
+        obs, r, term, trunc, info = env.step(np.array([0, 1, 0, 1], dtype=np.float32))
+        assert r == pytest.approx(env.state()[0, 1], abs=1e-5)
+        assert not trunc
+        done = term
+    assert info["reached"].any() and not env.arena.active.any()
+    assert env.arena.reached.all() and not env.arena.violated.any()
+    assert calls[0] == ((20,), (4,), (20,))
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros(4))
+    env.reset(seed=1)
+    with pytest.raises(ValueError, match=r"\[4\]"):
+        env.step(np.zeros(3))
+
+
+def test_joint_env_truncates_at_step_limit():
+    env = JointDroneEnv(max_steps=5)
+    env.reset(seed=0)
+    flags = [env.step(np.zeros(4))[2:4] for _ in range(5)]
+    assert flags[:-1] == [(False, False)] * 4 and flags[-1] == (False, True)
+
+
+# ---- determinism and dynamics -------------------------------------------------------
+def rollout(seed: int, steps: int = 40) -> np.ndarray:
+    env = DroneArena(constrained=False)
+    env.reset(seed=seed)
+    for t in range(steps):
+        env.step({D0: np.array([0.5, np.sin(t / 5)]), D1: np.array([-0.5, 0.3])})
+    return env.trajectory()
+
+
+def test_same_seed_same_trajectory():
+    np.testing.assert_array_equal(rollout(7), rollout(7))
+    assert not np.array_equal(rollout(7), rollout(8))
+    starts = np.stack([_start(s) for s in range(20)])
+    assert np.all(np.abs(starts - np.asarray(NOMINAL_STARTS)) <= START_JITTER)
+    assert len({tuple(s.ravel()) for s in starts}) == 20  # the seed randomises the start
+
+
+def _start(seed: int) -> np.ndarray:
+    env = DroneArena()
+    env.reset(seed=seed)
+    return env.state()[:, :2]
+
+
+def test_first_order_response_reaches_command():
+    dyn = DroneDynamics(noise_std=0.0)
+    pos, vel = np.zeros(2), np.zeros(2)
+    u = np.array([0.6, -0.3])
+    p1, v1 = dyn.step(pos, vel, u)
+    np.testing.assert_allclose(v1, dyn.dt / dyn.tau * u * dyn.max_speed)
+    np.testing.assert_allclose(p1, dyn.dt * v1)
+    for _ in range(40):  # 4 s = 13 time constants
+        pos, vel = dyn.step(pos, vel, u)
+    np.testing.assert_allclose(vel, u * dyn.max_speed, atol=1e-5)
+    # Commands beyond the box are clipped to it.
+    _, v = dyn.step(np.zeros(2), np.array([1.0, 0.0]), np.array([5.0, 0.0]))
+    assert v[0] == pytest.approx(1.0)
+
+
+def test_noise_is_seeded_and_scaled():
+    def hover(seed):
+        env = arena([[5.0, 2.0], [5.0, 8.9]], constrained=False, max_steps=2000)
+        env.reset(seed=seed, options={"positions": [[5.0, 2.0], [5.0, 8.9]]})
+        vels = []
+        for _ in range(1500):
+            env.step({a: np.zeros(2) for a in env.agents})
+            vels.append(env.state()[:, 2:])
+        return np.array(vels)
+
+    a, b, c = hover(1), hover(1), hover(2)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+    # Stationary std of v' = (1 - k) v + σ ε with k = dt/τ is σ / sqrt(1 - (1 - k)^2).
+    dyn = DroneDynamics()
+    k = dyn.dt / dyn.tau
+    want = dyn.noise_std / np.sqrt(1 - (1 - k) ** 2)
+    assert a[100:].std() == pytest.approx(want, rel=0.15)
+
+
+def test_joint_step_numpy_torch_and_batch_agree():
+    rng = np.random.default_rng(0)
+    B = 64
+    pos = rng.uniform(0.0, ROOM_SIZE, size=(B, 2, 2))
+    state = np.concatenate([pos, rng.uniform(-1, 1, size=(B, 2, 2))], -1)
+    cmd = rng.uniform(-1, 1, size=(B, 2, 2))
+    active = rng.random((B, 2)) < 0.8
+    noise = 0.02 * rng.standard_normal((B, 2, 2))
+    dyn = DroneDynamics()
+    for constrained in (True, False):
+        r_np = joint_step(state, cmd, active, noise, dynamics=dyn, constrained=constrained)
+        r_t = joint_step(*(torch.as_tensor(x) for x in (state, cmd, active, noise)),
+                         dynamics=dyn, constrained=constrained)
+        for f in ("state", "active", "violated", "reached", "collision"):
+            np.testing.assert_allclose(getattr(r_t, f).numpy(), getattr(r_np, f), err_msg=f)
+        for b in range(0, B, 9):  # a batch entry equals the unbatched step
+            one = joint_step(state[b], cmd[b], active[b], noise[b], dynamics=dyn,
+                             constrained=constrained)
+            np.testing.assert_array_equal(one.state, r_np.state[b])
+            np.testing.assert_array_equal(one.violated, r_np.violated[b])
+        # Inactive drones do not move.
+        np.testing.assert_array_equal(r_np.state[~active], state[~active])
+
+
+# ---- constraints ------------------------------------------------------------------
+@pytest.mark.parametrize("constrained", [True, False])
+def test_obstacle_violation_freezes_only_in_true_game(constrained):
+    env = arena([[2.0, 3.4], [8.0, 1.0]], constrained=constrained)
+    infos = fly(env, {D0: (0.0, 1.0)}, 15)
+    hit = next(t for t, i in enumerate(infos) if i.get(D0, {}).get("violated"))
+    assert infos[hit][D0]["in_obstacle"] and not infos[hit][D1]["violated"]
+    if constrained:
+        assert D0 not in env.agents and env.violated[0] and not env.active[0]
+        frozen = env.state()[0]
+        assert np.all(frozen[2:] == 0.0) and in_obstacle(frozen[:2])
+        fly(env, {D1: (0.0, 0.5)}, 5)
+        np.testing.assert_array_equal(env.state()[0], frozen)
+    else:
+        assert D0 in env.agents and env.violated[0]
+        y = env.state()[0, 1]
+        fly(env, {D0: (0.0, 1.0)}, 5)
+        assert env.state()[0, 1] > y + 0.3  # flies on through the obstacle
+
+
+@pytest.mark.parametrize("constrained", [True, False])
+def test_leaving_the_room_and_doors(constrained):
+    # drone 0 leaves through the left wall; drone 1 through drone 0's door: violations.
+    env = arena([[0.3, 2.0], [8.75, 9.2]], constrained=constrained)
+    infos = fly(env, {D0: (-1.0, 0.0), D1: (0.0, 1.0)}, 10)
+    assert any(i.get(D0, {}).get("out_of_room") for i in infos)
+    assert any(i.get(D1, {}).get("out_of_room") for i in infos)
+    assert not env.reached.any()
+    assert (D0 in env.agents) == (not constrained)
+    # drone 0 through its own door: success, reward 1, done in both games.
+    env = arena([[8.75, 9.0], [1.25, 5.5]], constrained=constrained)
+    rewards = []
+    for _ in range(20):
+        if D0 not in env.agents:
+            break
+        _, r, term, _, info = env.step({a: np.array([0.0, 1.0]) for a in env.agents})
+        rewards.append(r[D0])
+    assert term[D0] and info[D0]["reached"] and not info[D0]["violated"]
+    assert rewards[-1] == 1.0 and sum(rewards) == 1.0
+    assert env.state()[0, 1] >= ROOM_SIZE - DOOR_DEPTH and env.state()[0, 1] <= ROOM_SIZE
+
+
+@pytest.mark.parametrize("constrained", [True, False])
+def test_collision_detected(constrained):
+    env = arena([[4.0, 2.0], [6.0, 2.0]], constrained=constrained)
+    infos = fly(env, {D0: (1.0, 0.0), D1: (-1.0, 0.0)}, 30)
+    t = next(t for t, i in enumerate(infos) if i[D0]["collision"])
+    assert infos[t][D1]["collision"] and infos[t][D0]["violated"] and infos[t][D1]["violated"]
+    assert np.linalg.norm(env.trajectory()[t + 1, 0] - env.trajectory()[t + 1, 1]) \
+        < PROXIMITY_RADIUS
+    assert np.all(np.linalg.norm(env.trajectory()[:t + 1, 0] - env.trajectory()[:t + 1, 1],
+                                 axis=-1) >= PROXIMITY_RADIUS)
+    assert (env.agents == []) == constrained
+
+
+def test_bad_input_is_rejected_with_fix():
+    with pytest.raises(ValueError, match="max_steps"):
+        DroneArena(max_steps=0)
+    with pytest.raises(ValueError, match="dt <= tau"):
+        DroneDynamics(dt=0.5, tau=0.3)
+    env = DroneArena()
+    with pytest.raises(ValueError, match="obstacles"):
+        env.reset(options={"positions": [[2.0, 4.5], [8.0, 1.0]]})
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="No action"):
+        env.step({D0: np.zeros(2)})
+    with pytest.raises(ValueError, match=r"\[2\] velocity command"):
+        env.step({D0: np.zeros(3), D1: np.zeros(2)})
+    with pytest.raises(ValueError, match="Unknown agent"):
+        env.observation_space("drone_7")
+
+
+def test_render_returns_image():
+    env = DroneArena(render_mode="rgb_array")
+    env.reset(seed=0)
+    fly(env, {D0: (0.5, 0.5), D1: (-0.5, 0.5)}, 10)
+    env.set_constraint_overlay(CellOccupancyCostBasis().true_constraints())
+    img = env.render()
+    assert img.dtype == np.uint8 and img.shape == (320, 320, 3)
+    env.set_constraint_overlay([cell(4, 6), cell(5, 6)])
+    assert env.render().shape == (320, 320, 3)
+    with pytest.raises(ValueError, match="Constraint cells"):
+        env.set_constraint_overlay([100])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert DroneArena().render() is None
+
+
+# ---- demonstrations -----------------------------------------------------------------
+@pytest.fixture(scope="module")
+def demos() -> DroneDemonstrations:
+    return make_drone_demonstrations(9, rng=np.random.default_rng(0))
+
+
+def test_demonstrations_reach_doors_without_violation(demos):
+    assert demos.n_pairs == 9 and demos.states.shape == (9, demos.horizon + 1, 2, 4)
+    assert demos.actions.shape == (9, demos.horizon, 2, 2) and demos.lengths.max() == \
+        demos.horizon
+    for k in range(demos.n_pairs):
+        states, env = replay_pair(demos, k)
+        n = demos.lengths[k]
+        np.testing.assert_array_equal(states, demos.states[k, :n + 1])
+        assert env.reached.all() and not env.violated.any() and not env.agents
+        # The same actions in the nominal game report no violation either.
+        _, nominal = replay_pair(demos, k, constrained=False)
+        assert nominal.reached.all() and not nominal.violated.any()
+    # No demonstrated state touches a true constraint feature: zero true cost.
+    basis = CellOccupancyCostBasis()
+    cost = basis(demos.states) @ basis.true_weights()  # numpy in, read-only
+    assert float(cost.max()) == 0.0
+
+
+def test_demonstrations_are_seeded_and_varied(demos):
+    again = make_drone_demonstrations(2, rng=np.random.default_rng(0))
+    np.testing.assert_array_equal(again.seeds, demos.seeds[:2])
+    for k in range(2):  # the same pairs, padded to a different horizon
+        n = demos.lengths[k]
+        assert again.lengths[k] == n
+        np.testing.assert_array_equal(again.states[k, :n + 1], demos.states[k, :n + 1])
+        np.testing.assert_array_equal(again.actions[k, :n], demos.actions[k, :n])
+    # Randomised via-points and timing: no two pairs fly the same path.
+    assert len(set(demos.lengths.tolist())) > 3
+    with pytest.raises(TypeError, match="default_rng"):
+        make_drone_demonstrations(2, rng=0)
+
+
+def test_planner_paths_keep_clearance():
+    assert path_clearance(np.array([[1.0, 1.0], [2.0, 6.0]]), 0) == 0.0  # through a wall
+    assert path_clearance(np.array([[5.0, 2.0], [5.0, 5.0]]), 0) == pytest.approx(1.0)
+
+
+def test_round_trip(tmp_path, demos):
+    path = save_drone_demonstrations(tmp_path / "sub" / "drones.npz", demos)
+    back = load_drone_demonstrations(path, n_pairs=9, dt=0.1)
+    assert back == demos and back.seeds is not None
+    unseeded = DroneDemonstrations(demos.states, demos.actions, demos.lengths, demos.dt)
+    assert load_drone_demonstrations(
+        save_drone_demonstrations(tmp_path / "u.npz", unseeded)) == unseeded
+    with pytest.raises(ValueError, match=re.escape("drones.npz") + ".*n_pairs"):
+        load_drone_demonstrations(path, n_pairs=8)
+    with pytest.raises(FileNotFoundError):
+        load_drone_demonstrations(tmp_path / "missing.npz")
+
+
+def _fields(demos: DroneDemonstrations) -> dict:
+    return {"states": np.array(demos.states), "actions": np.array(demos.actions),
+            "lengths": np.array(demos.lengths), "dt": np.float64(0.1),
+            "format_version": np.int64(1)}
+
+
+def _nan_states(f):
+    f["states"][1, 3, 0, 2] = np.nan
+
+
+def _out_of_room(f):
+    f["states"][2, 5, 1, 0] = -0.5
+
+
+def _padding(f):
+    f["lengths"][0] -= 3
+
+
+BAD_FILES = {
+    "int-states": ("states", lambda f: f.update(states=f["states"].astype(np.int64))),
+    "nan": ("states", _nan_states),
+    "object": ("actions", lambda f: f.update(actions=f["actions"].astype(object))),
+    "shape": ("actions", lambda f: f.update(actions=f["actions"][:, :-1])),
+    "states-3d": ("states", lambda f: f.update(states=f["states"][..., 0])),
+    "out-of-room": ("states", _out_of_room),
+    "big-action": ("actions", lambda f: f["actions"].__setitem__((0, 0, 0, 0), 1.5)),
+    "float-lengths": ("lengths", lambda f: f.update(lengths=f["lengths"] * 1.0)),
+    "long": ("lengths", lambda f: f["lengths"].__setitem__(0, 10_000)),
+    "padding": ("lengths", _padding),
+    "dt": ("dt", lambda f: f.update(dt=np.float64(-0.1))),
+    "dt-int": ("dt", lambda f: f.update(dt=np.int64(1))),
+    "missing": ("lengths", lambda f: f.pop("lengths")),
+    "unknown": ("extra", lambda f: f.update(extra=np.zeros(2))),
+    "version": ("format_version", lambda f: f.update(format_version=np.int64(2))),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FILES))
+def test_malformed_files_are_rejected(tmp_path, demos, case):
+    field, mutate = BAD_FILES[case]
+    f = _fields(demos.subset([0, 1, 2]))
+    mutate(f)
+    path = tmp_path / f"bad_{case}.npz"
+    np.savez(path, **f)
+    with pytest.raises(ValueError, match=re.escape(path.name) + ".*" + re.escape(field)):
+        load_drone_demonstrations(path)
+
+
+def test_not_an_archive(tmp_path):
+    path = tmp_path / "junk.npz"
+    Path(path).write_bytes(b"not a zip file at all")
+    with pytest.raises(ValueError, match="junk.npz.*not an .npz|junk.npz.*corrupt"):
+        load_drone_demonstrations(path)
+
+
+def test_partition_4_5(demos):
+    a, b = partition_drone_demonstrations(demos)
+    assert (a.n_pairs, b.n_pairs) == PAPER_DRONE_SPLIT
+    assert a == demos.subset(range(4)) and b == demos.subset(range(4, 9))
+    parts = partition_drone_demonstrations(demos, rng=np.random.default_rng(1))
+    seeds = np.concatenate([p.seeds for p in parts])
+    assert sorted(seeds.tolist()) == sorted(demos.seeds.tolist())
+    with pytest.raises(ValueError, match="sum to 8"):
+        partition_drone_demonstrations(demos, (4, 4))
+
+
+# ---- features -----------------------------------------------------------------------
+def test_cell_basis_shapes_values_and_true_constraints():
+    basis = CellOccupancyCostBasis()
+    assert basis.dim == 201 and list(basis.parameters()) == []
+    states = torch.zeros(3, 2, 4, dtype=torch.float64)
+    states[0, :, :2] = torch.tensor([[4.5, 6.5], [0.2, 9.9]])
+    states[1, :, :2] = torch.tensor([[5.0, 5.0], [5.3, 5.0]])  # 0.3 m apart
+    states[2, :, :2] = torch.tensor([[10.0, -0.5], [3.999, 2.0]])  # border, outside
+    phi = basis(states)
+    assert phi.shape == (3, 201) and phi.dtype == torch.float64
+    assert torch.all(phi[:, :200].sum(-1) == 2)
+    assert phi[0, cell(4, 6)] == 1 and phi[0, 100 + cell(0, 9)] == 1
+    assert phi[1, cell(5, 5)] == 1 and phi[1, 100 + cell(5, 5)] == 1
+    assert phi[2, cell(9, 0)] == 1 and phi[2, 100 + cell(3, 2)] == 1
+    assert phi[:, 200].tolist() == [0.0, 1.0, 0.0]
+    true = basis.true_constraints()
+    assert true.shape == (201,) and true[200]
+    for i in range(2):
+        block = true[i * 100:(i + 1) * 100]
+        assert block[cell(4, 6)] and block[cell(5, 7)] and block[cell(1, 4)]  # inside
+        assert not block[cell(1, 1)] and not block[cell(9, 1)]  # the start cells
+        assert not block[cell(3, 4)] and not block[cell(4, 5)]  # touching only
+        assert int(block.sum()) == 8
+    assert torch.equal(true[:100], torch.from_numpy(obstacle_cell_mask()))
+    # Batched leading dims, float32 and numpy input.
+    assert basis(np.zeros((4, 5, 2, 4))).shape == (4, 5, 201)
+    assert basis(torch.zeros(2, 2, 4, dtype=torch.float32)).dtype == torch.float32
+
+
+def test_rbf_basis_matches_cell_constraints():
+    rbf = RBFCostBasis()
+    cells = CellOccupancyCostBasis()
+    assert rbf.dim == 201 and list(rbf.parameters()) == []
+    assert torch.equal(rbf.true_constraints(), cells.true_constraints())
+    rng = np.random.default_rng(0)
+    states = torch.as_tensor(rng.uniform(0, ROOM_SIZE, size=(500, 2, 4)))
+    phi = rbf(states)
+    assert phi.shape == (500, 201) and phi.min() >= 0 and phi.max() <= 1
+    coarse = RBFCostBasis(n_per_axis=5, width=1.5)
+    assert coarse.dim == 51 and coarse(states).shape == (500, 51)
+
+
+def test_reward_bases():
+    door = DoorLocationRewardBasis(coefficient=2.0)
+    assert door.dim == 4 and door.max_value == 2.0 and list(door.parameters()) == []
+    at_start = torch.tensor([[[*NOMINAL_STARTS[0], 0, 0], [*NOMINAL_STARTS[1], 0, 0]]])
+    at_door = torch.tensor([[[8.75, 10.0, 0, 0], [1.25, 10.0, 0, 0]]])
+    f0, f1 = door(at_start)[0], door(at_door)[0]
+    assert f0[0] == 0 and f0[2] == 0  # progress 0 at the start
+    assert f1.tolist() == [2.0, 2.0, 2.0, 2.0]  # progress and closeness full at the door
+    rng = np.random.default_rng(0)
+    states = torch.as_tensor(rng.uniform(-1, 11, size=(500, 2, 4)))
+    phi = door(states)
+    assert phi.min() >= 0 and phi.max() <= 2.0
+    # Oriented towards the door: moving drone 0 towards its door raises both features.
+    closer = at_start.clone()
+    closer[0, 0, :2] += torch.tensor([1.0, 1.0])
+    assert torch.all(door(closer)[0, :2] > f0[:2])
+    fourier = FourierRewardBasis(order=2)
+    assert fourier.dim == 18
+    phi = fourier(states)
+    assert phi.shape == (500, 18) and phi.min() >= 0 and phi.max() <= 1
+    assert torch.all(phi[:, 0] == 1)  # the constant term
+
+
+def test_feature_input_checks():
+    basis = CellOccupancyCostBasis()
+    with pytest.raises(ValueError, match=r"\[\.\.\., 2, 4\]"):
+        basis(torch.zeros(3, 4))
+    with pytest.raises(ValueError, match="NaN"):
+        basis(torch.full((1, 2, 4), float("nan")))
+    with pytest.raises(ValueError, match="float"):
+        basis(torch.zeros(1, 2, 4, dtype=torch.int64))
+    with pytest.raises(ValueError, match="do not match"):
+        basis(torch.zeros(3, 2, 4), torch.zeros(2, 2, 2))
+    assert basis(torch.zeros(3, 2, 4), torch.zeros(3, 2, 2)).shape == (3, 201)
+    with pytest.raises(ValueError, match="coefficient"):
+        DoorLocationRewardBasis(coefficient=0)
+    with pytest.raises(ValueError, match="n_per_axis"):
+        RBFCostBasis(n_per_axis=0)
+
+
+def test_render_arena_with_demonstrations(demos):
+    img = render_arena(
+        trajectories=[demos.states[k, :demos.lengths[k] + 1, :, :2] for k in range(3)],
+        constraint_cells=CellOccupancyCostBasis().true_constraints(), title="demos")
+    assert img.shape == (320, 320, 3) and img.dtype == np.uint8
+    assert len(OBSTACLES) == 3
