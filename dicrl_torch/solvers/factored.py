@@ -26,6 +26,43 @@ per-step ``S·A`` array.
 
 Hard constraints are ``-inf`` rewards; a temperature ``τ`` is a reward scaling
 (``V = τ logsumexp(Q/τ)``) and ``τ = 0`` gives the hard-max DP.
+
+**Two backups.** ``solve(..., backup="causal")`` (default) is the maximum-*causal*-entropy
+model above. ``backup="trajectory"`` is the (trajectory-level) maximum-entropy model of
+Ziebart et al. (2008), ``P(ζ) ∝ P0(s_0) Π_t P(s_{t+1}|s_t, a_t) exp(Σ_t r(s_t, a_t))``,
+whose backward recursion replaces the expected next value by its log-expected-exp::
+
+    L_t(s, a) = log E[exp V_{t+1}(s') | s, a],    Q_t = r + γ L_t,    V_t = logsumexp_a Q_t
+
+computed through the same per-expert operators in log space: each operator combines
+its two outcomes (move, stay) with a ``logaddexp``, i.e. each element subtracts its own
+max, so nothing overflows or underflows to a wrong value in float32. Rewards pass
+through (``log E[exp(X + c)] = c + log E[exp X]`` for ``c`` constant along the mixed
+axis), divided by ``γ`` so that the final ``γ ·`` gives them back unscaled.
+
+*Discounting.* ``γ`` multiplies the continuation ``L_t`` exactly where it multiplies
+``E[V_{t+1}]`` in the causal backup. At ``γ = 1`` this is Ziebart's model exactly; for
+any ``γ`` and deterministic dynamics, ``L_t = V_{t+1}(s')`` and both backups coincide.
+For ``γ < 1`` it is the exact solution of the variational problem
+``max E_{π, P̃}[Σ_t γ^t (r_t + H(π_t(·|s_t))) − Σ_t γ^{t+1} KL(P̃_t(·|s_t, a_t) ‖ P)]``:
+the model also picks the *dynamics* ``P̃`` (this is how the trajectory-level model
+differs from the causal one), paying for departing from ``P`` at the discount of the
+state it arrives in. Its optimum is ``π_t = exp(Q_t − V_t)`` and the optimistic,
+tilted dynamics ``P̃_t(s'|s, a) = P(s'|s, a) exp(V_{t+1}(s') − L_t(s, a))``, with
+``P̃_0(s) ∝ P0(s) exp V_0(s)``. (Putting ``γ`` inside, ``log E[exp γV]``, would charge
+the KL at ``γ^t``; the exact Gibbs law of the discounted return needs a time-varying
+temperature ``γ^{-t}`` and would not coincide with the causal backup for deterministic
+dynamics.) The γ-discounted log-likelihood of a trajectory then telescopes to
+``Σ_t γ^t r(s_t, a_t) + γ^T V_T(s_T) − log Σ_s P0(s) exp V_0(s)`` (+ terms of ``P``
+and ``P0`` that do not depend on the model); see ``dicrl_torch.algos.greedy``.
+
+The trajectory forward pass pushes ``ρ_t = d_t π_t`` through the tilted dynamics. The
+tilt ``exp(V_{t+1}(s') − L_t(s, a))`` is split over the experts along the chain of
+partial log-expectations ``Λ`` the backward pass builds (``Λ_N = V_{t+1}``, ``Λ_{i-1} =
+log E_i[exp Λ_i]``, ``Λ_0 = L_t``): expert ``i``'s factor ``P_i exp(Λ_i − Λ_{i-1})`` is a
+proper transition kernel whose weights are at most ``1/min(p, 1-p)``, so each push stays
+mass-preserving and bounded, and the per-expert marginals are read off exactly as in
+the causal pass.
 """
 
 from __future__ import annotations
@@ -72,8 +109,28 @@ def _logsumexp(q: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
     return torch.where(finite.squeeze(dims), out, top.squeeze(dims))
 
 
+# A tilt factor of the trajectory forward pass is at most 1/min(p, 1-p); exponents
+# above this bound only occur on zero-weight (padding / impossible) terms, which are
+# clamped so that 0 · exp(.) stays 0 instead of 0 · inf = NaN.
+_TILT_EXP_MAX = 60.0
+
+
+def _mix(moved: torch.Tensor, stay: torch.Tensor, p: float, log_space: bool) -> torch.Tensor:
+    """Combine a move outcome and a stay outcome of one expert.
+
+    ``p · moved + (1 - p) · stay`` (an expectation), or in log space
+    ``log(p e^moved + (1 - p) e^stay)`` by a ``logaddexp`` (stable: per-element max).
+    With ``p = 1`` only ``moved`` counts: ``(1 - p) · (-inf)`` would be NaN.
+    """
+    if p == 1.0:
+        return moved + 0.0 if log_space else p * moved
+    if log_space:
+        return torch.logaddexp(moved + math.log(p), stay + math.log1p(-p))
+    return p * moved + (1.0 - p) * stay
+
+
 def _apply_expert(X: torch.Tensor, i: int, n_experts: int, nxt_t: torch.Tensor, p: float,
-                  r_t: torch.Tensor | None) -> torch.Tensor:
+                  r_t: torch.Tensor | None, log_space: bool = False) -> torch.Tensor:
     """Apply expert ``i``'s move-or-stay operator along its state axis.
 
     Args:
@@ -83,6 +140,7 @@ def _apply_expert(X: torch.Tensor, i: int, n_experts: int, nxt_t: torch.Tensor, 
         nxt_t: ``[A1, S1]`` successful-move targets (transposed table).
         p: success probability.
         r_t: ``[A1, S1]`` reward of expert ``i`` added after the operator, or None.
+        log_space: ``log E[exp X]`` instead of ``E[X]`` (trajectory backup).
 
     Returns:
         ``[A1] + [A1]*k + [S1]*N``: the new action axis ``a_i`` comes first.
@@ -94,7 +152,7 @@ def _apply_expert(X: torch.Tensor, i: int, n_experts: int, nxt_t: torch.Tensor, 
     shape = list(X.shape)
     shape[axis:axis + 1] = [A1, S1]
     moved = moved.reshape(shape).movedim(axis, 0)
-    out = p * moved + (1.0 - p) * X.unsqueeze(0)
+    out = _mix(moved, X.unsqueeze(0), p, log_space)
     if r_t is not None:
         rs = [A1] + [1] * (X.dim())
         rs[1 + axis] = S1
@@ -103,18 +161,38 @@ def _apply_expert(X: torch.Tensor, i: int, n_experts: int, nxt_t: torch.Tensor, 
 
 
 def _prepare(V_next: torch.Tensor, r_t: torch.Tensor, nxt_t: torch.Tensor, p: float,
-             gamma: float) -> torch.Tensor:
+             gamma: float, trajectory: bool = False) -> torch.Tensor:
     """``γ V_{t+1}`` through the operators of experts N..2 (with their rewards):
-    ``[A1]*(N-1) + [S1]*N``. Argument ``r_t`` is ``[N, A1, S1]``."""
+    ``[A1]*(N-1) + [S1]*N``. Argument ``r_t`` is ``[N, A1, S1]``.
+
+    With ``trajectory``: ``V_{t+1}`` through the log-space operators, with rewards
+    ``r_i / γ`` (the ``γ`` is applied after expert 1's operator, in :func:`_q_first`)."""
     N = V_next.dim()
+    if trajectory:
+        X = V_next
+        for i in range(N - 1, 0, -1):
+            X = _apply_expert(X, i, N, nxt_t, p, r_t[i] / gamma, log_space=True)
+        return X
     X = gamma * V_next
     for i in range(N - 1, 0, -1):
         X = _apply_expert(X, i, N, nxt_t, p, r_t[i])
     return X
 
 
-def _q_first(X: torch.Tensor, r1_t: torch.Tensor, move_to: torch.Tensor, stay_at, p: float
-             ) -> torch.Tensor:
+def _mix_first(X: torch.Tensor, move_to: torch.Tensor, stay_at, p: float,
+               log_space: bool = False) -> torch.Tensor:
+    """Expert 1's operator at a set of its cells: ``[A1, C] + [A1]*(N-1) + [S1]*(N-1)``
+    (arguments as in :func:`_q_first`)."""
+    k = (X.dim() - 1) // 2  # N-1 action axes come first; expert 1's state axis is k
+    Xm = X.movedim(k, 0)  # [S1, A.., S..] (a view)
+    stay = Xm[stay_at]
+    if isinstance(stay_at, slice):
+        stay = stay.unsqueeze(0)
+    return _mix(Xm[move_to], stay, p, log_space)
+
+
+def _q_first(X: torch.Tensor, r1_t: torch.Tensor, move_to: torch.Tensor, stay_at, p: float,
+             gamma: float | None = None) -> torch.Tensor:
     """Q (without the joint term) for every expert-1 action at a set of expert-1 cells.
 
     Args:
@@ -123,29 +201,30 @@ def _q_first(X: torch.Tensor, r1_t: torch.Tensor, move_to: torch.Tensor, stay_at
         move_to: ``[A1, C]`` where each action's success leads.
         stay_at: the cells themselves: a ``slice`` (structured, cheap) or ``[A1, C]``.
         p: success probability.
+        gamma: None for the causal backup (``X`` already holds ``γ V``); the discount
+            for the trajectory backup (``X`` is mixed in log space, then scaled by it).
 
     Returns:
         ``[A1, C] + [A1]*(N-1) + [S1]*(N-1)``.
     """
-    k = (X.dim() - 1) // 2  # N-1 action axes come first; expert 1's state axis is k
-    Xm = X.movedim(k, 0)  # [S1, A.., S..] (a view)
-    stay = Xm[stay_at]
-    if isinstance(stay_at, slice):
-        stay = stay.unsqueeze(0)
-    q = p * Xm[move_to] + (1.0 - p) * stay
+    q = _mix_first(X, move_to, stay_at, p, log_space=gamma is not None)
+    if gamma is not None:
+        q = gamma * q
     return q + r1_t.reshape(tuple(r1_t.shape) + (1,) * (X.dim() - 1))
 
 
-def _backward_kernel(V_next, r_t, nxt_t, p, gamma, cells: slice, hard: bool):
-    """Backward step for the expert-1 cells ``cells``.
+def _backward_kernel(V_next, r_t, nxt_t, p, gamma, cells: slice, hard: bool,
+                     trajectory: bool = False):
+    """Backward step for the expert-1 cells ``cells`` (``trajectory``: ME backup).
 
     Returns:
         ``(L1, V)``: ``L1`` ``[A1, C] + [S1]*(N-1)`` logsumexp (or max) over the other
         experts' actions for each expert-1 action, and ``V`` ``[C] + [S1]*(N-1)`` the
         reduction of ``L1`` over expert 1's action (no joint term).
     """
-    X = _prepare(V_next, r_t, nxt_t, p, gamma)
-    q = _q_first(X, r_t[0][:, cells], nxt_t[:, cells], cells, p)  # [A1, C, A.., S..]
+    X = _prepare(V_next, r_t, nxt_t, p, gamma, trajectory)
+    q = _q_first(X, r_t[0][:, cells], nxt_t[:, cells], cells, p,
+                 gamma if trajectory else None)  # [A1, C, A.., S..]
     N = V_next.dim()
     others = tuple(range(2, N + 1))
     if hard:
@@ -156,10 +235,11 @@ def _backward_kernel(V_next, r_t, nxt_t, p, gamma, cells: slice, hard: bool):
 
 
 def _forward_kernel(V_next, shift, r_t, nxt_t, p, gamma, cells: slice, w_self, move_src,
-                    move_nxt, move_r, w_move):
+                    move_nxt, move_r, w_move, trajectory: bool = False):
     """Expert 1's transposed operator applied to ``ρ_t = d_t π_t`` (other experts'
     actions kept), as a pull: each target cell in ``cells`` gathers its self term
-    (structured) and its move predecessors (one table lookup each).
+    (structured) and its move predecessors (one table lookup each). With
+    ``trajectory``, expert 1's operator is the tilted one (module docstring).
 
     Args:
         V_next: ``[S1]*N``. shift: ``[S1]*N`` = ``log d_t - (V_t - g)``, ``-inf`` where
@@ -173,6 +253,9 @@ def _forward_kernel(V_next, shift, r_t, nxt_t, p, gamma, cells: slice, w_self, m
     Returns:
         ``Z`` ``[C] + [A1]*(N-1) + [S1]*(N-1)``.
     """
+    if trajectory:
+        return _forward_kernel_trajectory(V_next, shift, r_t, nxt_t, p, gamma, cells, w_self,
+                                          move_src, move_nxt, move_r, w_move)
     X = _prepare(V_next, r_t, nxt_t, p, gamma)
     pad = (1,) * (V_next.dim() - 1)
 
@@ -188,6 +271,66 @@ def _forward_kernel(V_next, shift, r_t, nxt_t, p, gamma, cells: slice, w_self, m
         q_mv = _q_first(X, move_r[k], move_nxt[k], move_src[k], p)
         Z = Z + rho_sum(q_mv, shift[move_src[k]], w_move[k])
     return Z
+
+
+def _forward_kernel_trajectory(V_next, shift, r_t, nxt_t, p, gamma, cells: slice, w_self,
+                               move_src, move_nxt, move_r, w_move):
+    """:func:`_forward_kernel` for the trajectory backup: ``ρ_t`` through expert 1's
+    tilted operator ``P_1(s1'|s1, a1) exp(Λ_1(s1', ..) − L_t(s, a))``.
+
+    With ``X = Λ_1 + Σ_{i≥2} r_i/γ`` (the log-space :func:`_prepare`) and ``Y`` its mix
+    at a predecessor (``L_t + Σ_{i≥2} r_i/γ``), the rewards cancel in ``X − Y`` and
+    ``log ρ_t = γY + r_1 + shift``; one exponent per term, bounded above by
+    ``log(1/w)``, so neither factor is formed alone (either may overflow).
+    """
+    X = _prepare(V_next, r_t, nxt_t, p, gamma, trajectory=True)
+    pad = (1,) * (V_next.dim() - 1)
+    k = (X.dim() - 1) // 2
+    target = X.movedim(k, 0)[cells].unsqueeze(0)  # Λ_1 at the target cells [1, C, A.., S..]
+
+    def bcast(x):  # [., C, S2..] -> [., C, 1 (other actions).., S2..]
+        return x.reshape(tuple(x.shape[:2]) + pad + tuple(x.shape[2:]))
+
+    def rho_sum(y, r1, sh, w):  # Σ_a1 w · exp(log ρ − Y + Λ_1(target))
+        r1 = r1.reshape(tuple(r1.shape) + pad + pad)
+        e = ((gamma - 1.0) * y + r1 + bcast(sh) + target).clamp_max(_TILT_EXP_MAX)
+        # y = -inf: no successor is allowed, so ρ = 0 there (and -inf - -inf is NaN).
+        e = torch.where(y > -math.inf, e, -math.inf)
+        return (w.reshape(tuple(w.shape) + pad + pad) * _exp_ftz(e)).sum(0)
+
+    y_self = _mix_first(X, nxt_t[:, cells], cells, p, log_space=True)
+    Z = rho_sum(y_self, r_t[0][:, cells], shift[cells].unsqueeze(0), w_self)
+    for j in range(move_src.shape[0]):
+        y_mv = _mix_first(X, move_nxt[j], move_src[j], p, log_space=True)
+        Z = Z + rho_sum(y_mv, move_r[j], shift[move_src[j]], w_move[j])
+    return Z
+
+
+def _pull_tilted_kernel(Y: torch.Tensor, M: torch.Tensor, Xt: torch.Tensor,
+                        w_self: torch.Tensor, a_index: torch.Tensor, move_src: torch.Tensor,
+                        w_move: torch.Tensor) -> torch.Tensor:
+    """:func:`_pull_kernel` through one expert's *tilted* operator (trajectory backup):
+    ``out[s'] = Σ_a Σ_s w(s→s'|a) Y[a, s] exp(Xt[s'] − M[a, s])``.
+
+    Args:
+        Y: ``[A1, S1, ...]`` mass.
+        M: ``[A1, S1, ...]`` ``log E[exp Xt]`` under each (action, cell) (``Λ_{i-1}``).
+        Xt: ``[S1', ...]`` the next-level log values ``Λ_i``.
+
+    Returns:
+        ``[S1', ...]``.
+    """
+    pad = (1,) * (Y.dim() - 2)
+
+    def term(w, y, m):
+        e = (Xt.unsqueeze(0) - m).clamp_max(_TILT_EXP_MAX)
+        e = torch.where(m > -math.inf, e, -math.inf)  # no mass where M = -inf
+        return (w.reshape(tuple(w.shape) + pad) * y * _exp_ftz(e)).sum(0)
+
+    out = term(w_self, Y, M)
+    for k in range(move_src.shape[0]):
+        out = out + term(w_move[k], Y[a_index, move_src[k]], M[a_index, move_src[k]])
+    return out
 
 
 def _pull_kernel(Y: torch.Tensor, w_self: torch.Tensor, a_index: torch.Tensor,
@@ -213,7 +356,10 @@ class SoftBellmanSolution:
         state_occupancy: ``[S1]*N`` float64, ``Σ_t γ^t d_t(s)`` (None if not computed).
         local_occupancy: ``[N, S1, A1]`` float64, ``Σ_t γ^t ρ_t^i(s_i, a_i)`` — each
             expert's marginal of the discounted state-action occupancy.
-        log_partition: ``Σ_s P0(s) V_0(s)``.
+        backup: ``"causal"`` (MCE) or ``"trajectory"`` (ME, Ziebart 2008): the model
+            the values, policy and occupancies belong to.
+        log_partition: causal: ``Σ_s P0(s) V_0(s)``; trajectory:
+            ``τ log Σ_s P0(s) exp(V_0(s)/τ)`` (``log Z``).
     """
 
     V: torch.Tensor
@@ -223,11 +369,17 @@ class SoftBellmanSolution:
     state_occupancy: torch.Tensor | None = None
     local_occupancy: torch.Tensor | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    backup: str = "causal"
 
     @property
     def log_partition(self) -> float:
         p0 = self.solver.model.initial_distribution().to(self.V.device)
-        return float((p0 * self.V[0].double()).sum())
+        if self.backup == "trajectory":
+            tau = self.temperature
+            v0 = self.V[0].double().reshape(-1) / tau
+            return tau * float(torch.logsumexp(torch.log(p0.reshape(-1)) + v0, 0))
+        # (states outside P0's support may have V = -inf: 0 · -inf would be NaN)
+        return float((p0 * torch.where(p0 > 0, self.V[0].double(), 0.0)).sum())
 
     def feature_expectation(self, features) -> torch.Tensor:
         """``[l]`` discounted feature expectation ``E[Σ_t γ^t φ(S_t, A_t)]``."""
@@ -242,8 +394,16 @@ class SoftBellmanSolution:
 
     def policy_at(self, t: int, cells: torch.Tensor, tie_tol: float = 1e-6) -> torch.Tensor:
         """``π_t(·|s)`` ``[B, A1**N]`` at joint states ``cells`` ``[B, N]``. With
-        temperature 0 the policy is uniform over the maximising joint actions."""
+        temperature 0 the policy is uniform over the maximising joint actions.
+
+        At a state where every action is forbidden (``Q_t = -inf`` throughout: the model
+        holds it unreachable) the policy is uniform, not NaN: a trajectory-backup (ME)
+        policy plans with optimistic dynamics and can reach such states under the real
+        ones, e.g. in ``dicrl_torch.metrics.rollout_true_cmg``."""
         q = self.q_values_at(t, cells).double()
+        dead = ~torch.isfinite(q).any(1, keepdim=True)  # [B, 1]
+        if dead.any():
+            q = torch.where(dead, 0.0, q)
         if self.temperature == 0.0:
             best = q.amax(1, keepdim=True)
             tie = (q >= best - tie_tol * best.abs().clamp_min(1.0)) & torch.isfinite(q)
@@ -304,6 +464,7 @@ class FactoredSoftBellman:
             self._bwd = torch.compile(_backward_kernel, dynamic=False)
             self._fwd = torch.compile(_forward_kernel, dynamic=False)
             self._pull_compiled = torch.compile(_pull_kernel, dynamic=False)
+            self._pull_tilted_compiled = torch.compile(_pull_tilted_kernel, dynamic=False)
 
     def _predecessors(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The transposed operator of one expert, for pulls.
@@ -348,24 +509,27 @@ class FactoredSoftBellman:
         return r_t, g
 
     # ------------------------------------------------------------------------ backward
-    def _backward_step(self, V_next, r_t, hard: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    def _backward_step(self, V_next, r_t, hard: bool, trajectory: bool = False
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(L1 [A1] + [S1]*N, Vlse [S1]*N)`` for one step (see _backward_kernel)."""
         S1 = self.model.n_cells
         gamma = self.model.gamma
         if self.use_compile:
             # A fresh tensor, not a view into V: views at other offsets would recompile.
-            return self._bwd(V_next.clone(), r_t, self.nxt_t, self.p, gamma, slice(None), hard)
+            return self._bwd(V_next.clone(), r_t, self.nxt_t, self.p, gamma, slice(None), hard,
+                             trajectory)
         L1 = torch.empty((self.model.n_actions,) + tuple(V_next.shape), dtype=V_next.dtype,
                          device=V_next.device)
         V = torch.empty_like(V_next)
         for c0 in range(0, S1, self.chunk_cells):
             c = slice(c0, min(S1, c0 + self.chunk_cells))
-            L1[:, c], V[c] = _backward_kernel(V_next, r_t, self.nxt_t, self.p, gamma, c, hard)
+            L1[:, c], V[c] = _backward_kernel(V_next, r_t, self.nxt_t, self.p, gamma, c, hard,
+                                              trajectory)
         return L1, V
 
     def solve(self, reward: FactoredReward, *, temperature: float = 1.0,
-              forward: bool = True, terminal_value: torch.Tensor | None = None
-              ) -> SoftBellmanSolution:
+              forward: bool = True, terminal_value: torch.Tensor | None = None,
+              backup: str = "causal") -> SoftBellmanSolution:
         """Backward (and optionally forward) pass for ``reward``.
 
         Args:
@@ -376,7 +540,17 @@ class FactoredSoftBellman:
             terminal_value: ``V_T`` ``[S1]*N`` (default 0). Nothing is scored at the
                 last state ``s_T``, so hard constraints on states must also be put
                 here (``-inf``), or the last move may enter a forbidden state.
+            backup: ``"causal"`` — maximum causal entropy, ``Q = r + γ E[V']``;
+                ``"trajectory"`` — maximum (trajectory) entropy, ``Q = r + γ τ log
+                E[exp(V'/τ)]``, with occupancies of its tilted dynamics (module
+                docstring). Needs ``temperature > 0``.
         """
+        if backup not in ("causal", "trajectory"):
+            raise ValueError(f"backup must be 'causal' (MCE) or 'trajectory' (ME), got "
+                             f"{backup!r}.")
+        if backup == "trajectory" and temperature == 0.0:
+            raise ValueError("backup='trajectory' needs a soft model: use temperature > 0 "
+                             "(its τ -> 0 limit is an optimistic max over outcomes).")
         if not (temperature >= 0.0 and math.isfinite(temperature)):
             raise ValueError(f"temperature must be a finite number >= 0, got {temperature!r}.")
         if forward and temperature == 0.0:
@@ -407,7 +581,7 @@ class FactoredSoftBellman:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             for t in steps:
-                l1, v = self._backward_step(V[t + 1], r_t, hard)
+                l1, v = self._backward_step(V[t + 1], r_t, hard, backup == "trajectory")
                 V[t] = v if g is None else v + g
                 if L1 is not None:
                     L1[t] = l1
@@ -425,7 +599,8 @@ class FactoredSoftBellman:
                     f"|V| reaches {v_max:.3g}: float32 cannot resolve the policy accurately "
                     f"at this scale; use dtype=torch.float64 (or smaller weights).",
                     RuntimeWarning, stacklevel=2)
-        sol = SoftBellmanSolution(V=V, reward=reward, temperature=float(temperature), solver=self)
+        sol = SoftBellmanSolution(V=V, reward=reward, temperature=float(temperature), solver=self,
+                                  backup=backup)
         sol.timings["backward_s"] = t1 - t0
         if forward:
             self._forward(sol, r_t, g, L1)
@@ -444,6 +619,7 @@ class FactoredSoftBellman:
         occ_local = torch.zeros(N, m.n_actions, m.n_cells, dtype=torch.float64,
                                 device=self.device)
         rest = tuple(range(2, N + 1))  # the other experts' state axes of [A1, S1, S..]
+        trajectory = sol.backup == "trajectory"
         steps = range(T)
         if self.progress:
             from tqdm.auto import tqdm
@@ -459,30 +635,57 @@ class FactoredSoftBellman:
             rho1 = _exp_ftz(L1[t] + shift.unsqueeze(0))
             # (sum(dim=()) would reduce every axis, hence the guard for one expert)
             occ_local[0] += disc * (rho1.sum(rest) if rest else rho1).double()
-            Z = self._forward_step(V[t + 1], shift, r_t).movedim(0, N - 1)  # [A.., S..]
+            Z = self._forward_step(V[t + 1], shift, r_t, trajectory).movedim(0, N - 1)
+            chain = self._log_chain(V[t + 1], r_t) if trajectory else None
             for i in range(1, N):  # Z: [A_i, .., A_N, S1, .., SN]
                 k = Z.dim() - N
                 # float32 partial sums, float64 accumulation over time
                 occ_local[i] += disc * Z.sum(
                     dim=tuple(a for a in range(Z.dim()) if a not in (0, k + i))).double()
-                Z = self._pull(Z.movedim(k + i, 1)).movedim(0, k + i - 1)
+                if trajectory:  # expert i's tilted operator, from Λ_{i+1} (chain[i])
+                    Xn = chain[i]  # [A_{i+1}.., S..]
+                    M = _apply_expert(Xn, i, N, self.nxt_t, self.p, None, log_space=True)
+                    Z = self._pull_tilted(Z.movedim(k + i, 1), M.movedim(k + i, 1),
+                                          Xn.movedim(k - 1 + i, 0)).movedim(0, k + i - 1)
+                else:
+                    Z = self._pull(Z.movedim(k + i, 1)).movedim(0, k + i - 1)
             d = Z.contiguous()  # a permuted view otherwise: odd strides recompile kernels
         sol.state_occupancy = occ_state
         sol.local_occupancy = occ_local.transpose(1, 2).contiguous()  # [N, S1, A1]
+
+    def _log_chain(self, V_next: torch.Tensor, r_t: torch.Tensor) -> dict[int, torch.Tensor]:
+        """The partial log-expectations of :func:`_prepare` (trajectory backup), keyed by
+        the 0-based expert whose pull uses them: ``{N-1: V_{t+1}, i: experts N-1..i+1
+        applied}`` for ``i = 1..N-1``; entry ``i`` has shape ``[A1]*(N-1-i) + [S1]*N``."""
+        N = V_next.dim()
+        chain = {N - 1: V_next}
+        X = V_next
+        for i in range(N - 1, 1, -1):
+            X = _apply_expert(X, i, N, self.nxt_t, self.p, r_t[i] / self.model.gamma,
+                              log_space=True)
+            chain[i - 1] = X
+        return chain
+
+    def _pull_tilted(self, Y: torch.Tensor, M: torch.Tensor, Xt: torch.Tensor) -> torch.Tensor:
+        """``[A1, S1, ...]`` -> ``[S1', ...]``: see :func:`_pull_tilted_kernel`."""
+        f = self._pull_tilted_compiled if self.use_compile else _pull_tilted_kernel
+        return f(Y.contiguous(), M.contiguous(), Xt.contiguous(), self.w_self, self.a_index,
+                 self.move_src, self.w_move)
 
     def _pull(self, Y: torch.Tensor) -> torch.Tensor:
         """``[A1, S1, ...]`` -> ``[S1', ...]``: see :func:`_pull_kernel`."""
         f = self._pull_compiled if self.use_compile else _pull_kernel
         return f(Y.contiguous(), self.w_self, self.a_index, self.move_src, self.w_move)
 
-    def _forward_step(self, V_next, shift, r_t):
-        """``Z`` ``[S1'] + [A1]*(N-1) + [S1]*(N-1)``: ρ_t through expert 1's operator."""
+    def _forward_step(self, V_next, shift, r_t, trajectory: bool = False):
+        """``Z`` ``[S1'] + [A1]*(N-1) + [S1]*(N-1)``: ρ_t through expert 1's operator
+        (tilted with ``trajectory``)."""
         S1 = self.model.n_cells
         move_r = r_t[0][self.a_index.unsqueeze(0), self.move_src]  # [K, A1, S1]
         args = (self.nxt_t, self.p, self.model.gamma)
         if self.use_compile:
             return self._fwd(V_next.clone(), shift, r_t, *args, slice(None), self.w_self,
-                             self.move_src, self.move_nxt, move_r, self.w_move)
+                             self.move_src, self.move_nxt, move_r, self.w_move, trajectory)
         # Eager: chunk over the *target* cells of expert 1 (the self term needs no
         # gather, so its cells are a slice of the full tables).
         parts = []
@@ -490,7 +693,7 @@ class FactoredSoftBellman:
             c = slice(c0, min(S1, c0 + self.chunk_cells))
             parts.append(_forward_kernel(
                 V_next, shift, r_t, *args, c, self.w_self[:, c], self.move_src[:, :, c],
-                self.move_nxt[:, :, c], move_r[:, :, c], self.w_move[:, :, c]))
+                self.move_nxt[:, :, c], move_r[:, :, c], self.w_move[:, :, c], trajectory))
         return torch.cat(parts, 0)
 
     # ------------------------------------------------------------------ point queries
@@ -511,9 +714,10 @@ class FactoredSoftBellman:
         idx = [cand[:, i].reshape([B] + [1] * i + [A1 + 1] + [1] * (N - 1 - i))
                for i in range(N)]
         U = Vn[tuple(idx)].double()  # [B, (1+A1)^N]
+        log_space = sol.backup == "trajectory"  # log E[exp V'] instead of E[V']
         for i in range(N):  # axis 1+i: [stay, moves] -> actions
             U = U.movedim(1 + i, 0)
-            U = self.p * U[1:] + (1 - self.p) * U[:1]
+            U = _mix(U[1:], U[:1], self.p, log_space)
             U = U.movedim(0, 1 + i)
         q = m.gamma * U
         for i in range(N):

@@ -1,0 +1,430 @@
+"""ME-greedy and MCE-greedy constraint inference (the paper's §6.1 baselines).
+
+Scobee & Sastry (ICLR 2020) infer constraints greedily, *given the true reward*: among
+the candidate constraints — indicator cost features that no demonstration accrues —
+add the one the current model expects to accrue most, enforce it by masking, and stop
+when the data's likelihood stops improving. One mechanism serves both baselines; only
+the model of the demonstrator differs:
+
+- ``model="me"`` (ME-greedy, Scobee's own): the trajectory-level maximum-entropy model
+  (Ziebart et al., 2008), ``FactoredSoftBellman.solve(..., backup="trajectory")``.
+- ``model="mce"`` (MCE-greedy, the paper's extension): the maximum-*causal*-entropy
+  (soft-Bellman) model, ``backup="causal"``, suited to stochastic dynamics.
+
+For deterministic dynamics (and the grid world's point-mass P0) the two coincide:
+values, policies, occupancies and likelihoods (tested).
+
+**Enforcing a constraint set C.** ``r(s, a) = -inf`` wherever some ``j ∈ C`` has
+``φ_j(s, a) > 0`` (features are non-negative), and ``V_T(s) = -inf`` wherever a *state*
+feature of C is positive (a feature whose per-expert tables do not vary with the
+action, e.g. a cell or the collision): nothing is scored at the last state, so
+without it the final move could still enter a forbidden cell
+(``dicrl_torch.demos.experts`` does the same for the experts).
+
+**Candidates.** A feature is a candidate when no demonstration accrues it at any
+``(s_t, a_t)``, ``t < T``, nor — for state features, which the terminal mask also
+covers — at ``s_T``. Under the ME model masking a candidate never makes a demonstration
+impossible (its tilted dynamics simply avoid the masked outcomes). Under the MCE model
+with stochastic dynamics it can: a hard mask makes every action that *risks* entering a
+forbidden state impossible (``E[V'] = -inf``), so a demonstration that took such an
+action and slipped has likelihood 0. Such a candidate contradicts the data: it is
+recorded as infeasible, never added, and the greedy moves on to the next one.
+
+**Log-likelihood** (mean over the demonstrations, nats per trajectory), the same
+γ-discounted convention as the D-ICRL objective ``F = Σ_t γ^t ln π_t(a_t|s_t)``:
+
+- MCE: :func:`dicrl_torch.algos.icrl.log_likelihood` ``/ m``.
+- ME: the model's step-``t`` conditional is ``π_t(a|s) P̃_t(s'|s, a)`` with the tilted
+  dynamics ``P̃_t = P exp(V_{t+1}(s') − L_t(s, a))`` (``dicrl_torch.solvers.factored``).
+  Weighting ``ln π_t`` by ``γ^t`` and ``ln P̃_t`` by ``γ^{t+1}`` (the discount of the
+  state it produces, as in the solver's variational objective), and with
+  ``Q_t − V_t = r + γL_t − V_t``, the sum telescopes::
+
+      Σ_t γ^t (r_t + γ L_t − V_t(s_t)) + γ^{t+1} (ln P + V_{t+1}(s_{t+1}) − L_t)
+          = Σ_t γ^t r(s_t, a_t) + γ^T V_T(s_T) − V_0(s_0) + Σ_t γ^{t+1} ln P(s_{t+1}|s_t, a_t)
+
+  and the initial tilt ``P̃_0 ∝ P0 e^{V_0}`` turns ``−V_0(s_0)`` into ``−log Z``,
+  ``log Z = log Σ_s P0(s) e^{V_0(s)}``. The ``ln P`` and ``ln P0`` terms do not depend
+  on the model and are dropped, as the MCE likelihood drops them. At ``γ = 1`` this is
+  Ziebart's ``R(ζ) − log Z``. (For deterministic dynamics the MCE sum telescopes to the
+  same expression, hence the coincidence.)
+
+Since the empirical distribution's entropy is fixed, the increase of the mean
+log-likelihood *is* the decrease of ``KL(P̂_D ‖ P_model)`` (exactly at ``γ = 1``; for
+``γ < 1``, of its γ-weighted per-step analogue). The greedy stops when adding the next
+candidate would improve it by less than ``epsilon`` nats per trajectory (that
+candidate is then not added), when no feasible candidate has a non-negligible
+expected accrual, or at ``max_constraints``. ``m ε`` is the total log-likelihood ratio
+a constraint must earn over ``m`` trajectories; the default ``ε = ln(m) / (2m)`` is
+BIC's price of one more parameter (0.023 nats per trajectory for ``m = 100``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from dicrl_torch.algos.icrl import log_likelihood as causal_log_likelihood
+from dicrl_torch.demos.experts import discounted_feature_sums
+from dicrl_torch.demos.storage import Demonstrations
+from dicrl_torch.envs.grid import TabularGridModel
+from dicrl_torch.features.bases import FactoredFeatures, FactoredReward, FeatureBasis
+from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
+
+# A feature counts as accrued / positive when above this (features are >= 0 and the
+# demonstrations' sums are exact).
+_POSITIVE = 0.0
+# Model accruals at or below this are float noise (the solver's exp floor leaves
+# ~1e-35 on masked or unreachable pairs): such a feature is not worth a solve.
+_NEGLIGIBLE_ACCRUAL = 1e-9
+
+
+# ------------------------------------------------------------------- likelihoods
+def trajectory_log_likelihood(solution: SoftBellmanSolution, demos: Demonstrations) -> float:
+    """``Σ_ζ [Σ_t γ^t r(s_t, a_t) + γ^T V_T(s_T) − log Z] / τ`` of ``demos`` under a
+    trajectory-backup (ME) solution, in nats (see the module docstring).
+
+    Returns ``-inf`` when a demonstration takes a masked pair or ends in a masked state.
+
+    Raises:
+        ValueError: ``solution`` was not solved with ``backup="trajectory"``.
+    """
+    if solution.backup != "trajectory":
+        raise ValueError(f"trajectory_log_likelihood needs a solution of "
+                         f"solve(..., backup='trajectory'), got backup={solution.backup!r}; "
+                         f"use dicrl_torch.algos.icrl.log_likelihood for the causal model.")
+    model = solution.solver.model
+    _check_demos(model, demos)
+    reward = solution.reward
+    gamma, T = model.gamma, model.horizon
+    cells = torch.tensor(demos.states)  # [m, T+1, N]
+    acts = torch.tensor(demos.actions)  # [m, T, N]
+    N = model.n_experts
+    r = sum(reward.local[i][cells[:, :-1, i], acts[:, :, i]].double() for i in range(N))
+    if reward.joint is not None:
+        r = r + reward.joint.double()[_flat(cells[:, :-1], model.n_cells)]
+    disc = gamma ** torch.arange(T, dtype=torch.float64)
+    ret = (r * disc).sum(1)  # [m]
+    v_T = solution.V[T].double().cpu()[tuple(cells[:, T].t())]  # [m]
+    total = ret + gamma**T * v_T - solution.log_partition
+    return float(total.sum()) / solution.temperature
+
+
+def _flat(cells: torch.Tensor, n_cells: int) -> torch.Tensor:
+    flat = torch.zeros(cells.shape[:-1], dtype=torch.int64)
+    for i in range(cells.shape[-1]):
+        flat = flat * n_cells + cells[..., i]
+    return flat
+
+
+def _check_demos(model: TabularGridModel, demos: Demonstrations) -> None:
+    if not isinstance(demos, Demonstrations):
+        raise TypeError(f"demonstrations must be a Demonstrations, got {type(demos).__name__}.")
+    if (demos.n_experts, demos.n_cells, demos.horizon) != (
+            model.n_experts, model.n_cells, model.horizon):
+        raise ValueError(
+            f"Demonstrations of {demos.n_experts} experts on {demos.n_cells} cells over "
+            f"T={demos.horizon} do not match the solver's model ({model.n_experts} experts, "
+            f"{model.n_cells} cells, T={model.horizon}); sample them from this model.")
+
+
+@dataclass(frozen=True)
+class DemonstratorModel:
+    """One kind of demonstrator model: the solver backup and its log-likelihood
+    ``(solution, demos) -> Σ_ζ ln P(ζ)`` (model-independent terms dropped)."""
+
+    name: str
+    backup: str
+    log_likelihood: Callable[[SoftBellmanSolution, Demonstrations], float]
+
+
+MODELS: dict[str, DemonstratorModel] = {
+    "mce": DemonstratorModel("MCE", "causal", causal_log_likelihood),
+    "me": DemonstratorModel("ME", "trajectory", trajectory_log_likelihood),
+}
+
+
+# ----------------------------------------------------------------- masks
+def is_state_feature(features: FactoredFeatures) -> torch.Tensor:
+    """``[l]`` bool: features whose value depends on the joint state only (per-expert
+    tables constant along the action axis; the joint part is state-only)."""
+    local = features.local
+    return (local == local[:, :, :1]).all(dim=(0, 1, 2))
+
+
+def constraint_masks(features: FactoredFeatures, selected: torch.Tensor,
+                     model: TabularGridModel) -> tuple[FactoredReward, torch.Tensor | None]:
+    """The hard masks of a constraint set.
+
+    Args:
+        features: cost features (non-negative), ``local [N, S1, A1, l]``.
+        selected: ``[l]`` bool, the constraint set C.
+        model: the tabular model (for the state shape).
+
+    Returns:
+        ``(mask, terminal)``: a :class:`FactoredReward` that is ``-inf`` on every pair
+        where some ``j ∈ C`` is positive and 0 elsewhere, and the terminal value
+        ``[S1]*N`` (``-inf`` where a state feature of C is positive), or None when C has
+        no state feature.
+    """
+    if selected.shape != (features.dim,) or selected.dtype != torch.bool:
+        raise ValueError(f"selected must be a [{features.dim}] bool mask, got "
+                         f"{tuple(selected.shape)} {selected.dtype}.")
+    N, S1 = model.n_experts, model.n_cells
+    hit = (features.local[..., selected] > _POSITIVE).any(-1)  # [N, S1, A1]
+    local = torch.zeros(hit.shape, dtype=torch.float64).masked_fill(hit, -math.inf)
+    joint = joint_hit = None
+    if features.joint is not None:
+        cols = selected[features.joint_columns]
+        if cols.any():
+            joint_hit = (features.joint[:, cols] > _POSITIVE).any(-1)  # [S]
+            joint = torch.zeros(joint_hit.shape, dtype=torch.float64).masked_fill(
+                joint_hit, -math.inf)
+    state_sel = selected & is_state_feature(features)
+    if not state_sel.any():
+        return FactoredReward(local=local, joint=joint), None
+    bad = torch.zeros(model.state_shape, dtype=torch.bool)
+    cell_bad = (features.local[:, :, 0][..., state_sel] > _POSITIVE).any(-1)  # [N, S1]
+    for i in range(N):
+        shape = [1] * N
+        shape[i] = S1
+        bad |= cell_bad[i].reshape(shape)
+    if joint_hit is not None:
+        bad |= joint_hit.reshape(model.state_shape)
+    terminal = torch.zeros(model.state_shape, dtype=torch.float64).masked_fill(bad, -math.inf)
+    return FactoredReward(local=local, joint=joint), terminal
+
+
+def demonstrated_features(features: FactoredFeatures, demos: Demonstrations,
+                          gamma: float) -> torch.Tensor:
+    """``[l]`` bool: features some demonstration accrues at a ``(s_t, a_t)``, or — for
+    state features — at its final state ``s_T``."""
+    sums = discounted_feature_sums(features, demos, gamma)  # [m, l]
+    seen = (sums > _POSITIVE).any(0)
+    last = torch.tensor(demos.states[:, -1])  # [m, N]
+    phi_T = features.at(last, torch.zeros_like(last), demos.n_cells)  # [m, l]
+    return seen | ((phi_T > _POSITIVE).any(0) & is_state_feature(features))
+
+
+# ----------------------------------------------------------------- the greedy
+@dataclass(frozen=True)
+class GreedyStep:
+    """One candidate the greedy evaluated.
+
+    Attributes:
+        feature: its index; name: its label.
+        accrual: the current model's expected discounted accrual of it.
+        log_likelihood: mean log-likelihood per demonstration with it added.
+        improvement: increase of that mean (= decrease of the KL) it brings.
+        accepted: whether it was added (``improvement >= epsilon``).
+        infeasible: whether it contradicts a demonstration (likelihood ``-inf``).
+        seconds: wall time of the solve and likelihood.
+    """
+
+    feature: int
+    name: str
+    accrual: float
+    log_likelihood: float
+    improvement: float
+    accepted: bool
+    infeasible: bool
+    seconds: float
+
+
+@dataclass
+class GreedyResult:
+    """Output of :meth:`GreedyConstraintInference.run`.
+
+    Attributes:
+        constraint_mask: ``[l]`` bool, the learned constraints.
+        added: indices of the added features, in order; ``added_names`` their labels.
+        log_likelihood: ``[k+1]`` mean log-likelihood per demonstration after
+            0, 1, .., k constraints (entry 0: the unconstrained model).
+        improvement: ``[k]`` per accepted step, the increase of that mean (= the KL
+            decrease), for curves over iterations.
+        steps: every evaluated candidate: the accepted ones, infeasible ones and the
+            rejected last one.
+        solution: the final model (a :class:`SoftBellmanSolution` with occupancies;
+            ``solution.policy_at`` rolls out with ``dicrl_torch.metrics.rollout_true_cmg``).
+        terminal_value: ``[S1]*N`` terminal mask of the final model (or None).
+        stop_reason: why the greedy stopped.
+        model: ``"me"`` or ``"mce"``.
+        seconds: total wall time.
+    """
+
+    constraint_mask: torch.Tensor
+    added: list[int]
+    added_names: list[str]
+    log_likelihood: list[float]
+    improvement: list[float]
+    steps: list[GreedyStep]
+    solution: SoftBellmanSolution
+    terminal_value: torch.Tensor | None
+    stop_reason: str
+    model: str
+    seconds: float = 0.0
+
+
+class GreedyConstraintInference:
+    """Greedy constraint inference with a given reward (ME-greedy / MCE-greedy).
+
+    Args:
+        solver: the factored solver of the learner's model (nominal dynamics).
+        reward: the true reward as a :class:`FactoredReward` (the baselines are given it).
+        cost_basis: the candidate features: a :class:`FeatureBasis` (labels from its
+            ``names``) or :class:`FactoredFeatures`; non-negative (indicators).
+        demonstrations: all demonstrations (the baselines are centralised).
+        model: ``"me"`` (trajectory maximum entropy) or ``"mce"`` (maximum causal
+            entropy).
+        epsilon: stop when the next candidate raises the mean log-likelihood by less
+            than this many nats per trajectory; None: ``ln(m) / (2m)`` (BIC, module
+            docstring).
+        max_constraints: at most this many constraints (None: no limit).
+        progress: show a tqdm bar over greedy steps.
+    """
+
+    def __init__(self, *, solver: FactoredSoftBellman, reward: FactoredReward,
+                 cost_basis: FeatureBasis | FactoredFeatures, demonstrations: Demonstrations,
+                 model: str = "mce", epsilon: float | None = None,
+                 max_constraints: int | None = None, progress: bool = False) -> None:
+        if model not in MODELS:
+            raise ValueError(f"model must be one of {sorted(MODELS)} ('me': ME-greedy, "
+                             f"'mce': MCE-greedy), got {model!r}.")
+        if epsilon is not None and not (epsilon >= 0.0 and math.isfinite(epsilon)):
+            raise ValueError(f"epsilon must be a finite number >= 0 (nats per trajectory), "
+                             f"got {epsilon!r}.")
+        if max_constraints is not None and (not isinstance(max_constraints, int)
+                                            or max_constraints < 0):
+            raise ValueError(f"max_constraints must be None or an int >= 0, got "
+                             f"{max_constraints!r}.")
+        if not isinstance(reward, FactoredReward):
+            raise TypeError(f"reward must be a FactoredReward (e.g. "
+                            f"reward_basis().weighted(w_true)), got {type(reward).__name__}.")
+        if isinstance(cost_basis, FeatureBasis):
+            features, names = cost_basis(), list(cost_basis.names)
+        elif isinstance(cost_basis, FactoredFeatures):
+            features, names = cost_basis, [f"feature {j}" for j in range(cost_basis.dim)]
+        else:
+            raise TypeError(f"cost_basis must be a FeatureBasis or FactoredFeatures, got "
+                            f"{type(cost_basis).__name__}.")
+        m = solver.model
+        want = (m.n_experts, m.n_cells, m.n_actions)
+        if tuple(features.local.shape[:3]) != want:
+            raise ValueError(f"cost features are for {tuple(features.local.shape[:3])} "
+                             f"(experts, cells, actions); the solver's model has {want}.")
+        if features.local.min() < 0 or (features.joint is not None and features.joint.min() < 0):
+            raise ValueError("cost features must be non-negative: a constraint masks the pairs "
+                             "where its feature is positive. Use an indicator basis.")
+        _check_demos(m, demonstrations)
+        self.solver, self.reward, self.features, self.names = solver, reward, features, names
+        self.demos = demonstrations
+        self.kind = MODELS[model]
+        self.model_name = model
+        m_demo = demonstrations.n_trajectories
+        self.epsilon = math.log(m_demo) / (2 * m_demo) if epsilon is None else float(epsilon)
+        self.max_constraints = features.dim if max_constraints is None else max_constraints
+        self.progress = progress
+        self.candidates = ~demonstrated_features(features, demonstrations, m.gamma)  # [l]
+        self.solves = 0
+
+    # ------------------------------------------------------------------ pieces
+    def solve(self, selected: torch.Tensor) -> tuple[SoftBellmanSolution, torch.Tensor | None]:
+        """The model with constraint set ``selected`` ``[l]`` bool, with occupancies."""
+        mask, terminal = constraint_masks(self.features, selected, self.solver.model)
+        self.solves += 1
+        sol = self.solver.solve(self.reward + mask, terminal_value=terminal,
+                                backup=self.kind.backup)
+        return sol, terminal
+
+    def mean_log_likelihood(self, solution: SoftBellmanSolution) -> float:
+        """Mean log-likelihood per demonstration (nats) under the chosen model."""
+        return self.kind.log_likelihood(solution, self.demos) / self.demos.n_trajectories
+
+    # ------------------------------------------------------------------ loop
+    def run(self) -> GreedyResult:
+        t_start = time.perf_counter()
+        selected = torch.zeros(self.features.dim, dtype=torch.bool)
+        sol, terminal = self.solve(selected)
+        ll = self.mean_log_likelihood(sol)
+        lls, gains, added, steps = [ll], [], [], []
+        infeasible = torch.zeros_like(selected)
+        bar = None
+        if self.progress:
+            from tqdm.auto import tqdm
+            total = min(self.max_constraints, int(self.candidates.sum()))
+            bar = tqdm(total=total, desc=f"{self.kind.name}-greedy")
+        stop = "max_constraints reached"
+        while len(added) < self.max_constraints:
+            accrual = sol.feature_expectation(self.features)  # [l]
+            open_ = self.candidates & ~selected & ~infeasible & (accrual > _NEGLIGIBLE_ACCRUAL)
+            if not open_.any():
+                stop = "no feasible candidate left with non-negligible expected accrual"
+                break
+            j = int(torch.where(open_, accrual, -math.inf).argmax())
+            t0 = time.perf_counter()
+            trial = selected.clone()
+            trial[j] = True
+            new_sol, new_terminal = self.solve(trial)
+            new_ll = self.mean_log_likelihood(new_sol)
+            gain = new_ll - ll
+            bad = new_ll == -math.inf  # contradicts a demonstration (module docstring)
+            accepted = not bad and gain >= self.epsilon
+            steps.append(GreedyStep(feature=j, name=self.names[j], accrual=float(accrual[j]),
+                                    log_likelihood=new_ll, improvement=gain, accepted=accepted,
+                                    infeasible=bad, seconds=time.perf_counter() - t0))
+            if bad:
+                infeasible[j] = True  # more masks only keep it impossible: never retry
+                continue
+            if not accepted:
+                stop = f"improvement {gain:.3g} < epsilon {self.epsilon:g}"
+                break
+            selected, sol, terminal, ll = trial, new_sol, new_terminal, new_ll
+            added.append(j)
+            lls.append(ll)
+            gains.append(gain)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(added=self.names[j], ll=f"{ll:.2f}")
+        if bar is not None:
+            bar.close()
+        return GreedyResult(constraint_mask=selected, added=added,
+                            added_names=[self.names[j] for j in added], log_likelihood=lls,
+                            improvement=gains, steps=steps, solution=sol,
+                            terminal_value=terminal, stop_reason=stop, model=self.model_name,
+                            seconds=time.perf_counter() - t_start)
+
+
+def me_greedy(**kwargs) -> GreedyResult:
+    """ME-greedy (Scobee & Sastry): :class:`GreedyConstraintInference` with
+    ``model="me"``; keyword arguments as there."""
+    return GreedyConstraintInference(model="me", **kwargs).run()
+
+
+def mce_greedy(**kwargs) -> GreedyResult:
+    """MCE-greedy (the paper's extension): :class:`GreedyConstraintInference` with
+    ``model="mce"``; keyword arguments as there."""
+    return GreedyConstraintInference(model="mce", **kwargs).run()
+
+
+# ----------------------------------------------------------------- evaluation
+def reachable_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
+                          cost_basis: FeatureBasis | FactoredFeatures, true_mask: torch.Tensor,
+                          min_accrual: float = 0.01) -> torch.Tensor:
+    """``[l]`` bool: the true constraints the nominal model would meet.
+
+    A true constraint feature is *reachable* when the unconstrained maximum-causal-
+    entropy model of the true reward (temperature 1, no mask: both greedy methods'
+    starting point in the stochastic case, and the one every constraint must be
+    learned against) accrues it with expected discounted count
+    ``E[Σ_t γ^t φ_j] >= min_accrual``. A constraint below that is one the demonstrations
+    carry (almost) no evidence of: no learner that only sees how the experts behave
+    can be blamed for missing it.
+    """
+    features = cost_basis() if isinstance(cost_basis, FeatureBasis) else cost_basis
+    sol = solver.solve(reward, backup="causal")
+    mu = sol.feature_expectation(features)
+    return true_mask.bool() & (mu >= min_accrual)
