@@ -17,14 +17,27 @@ with checkpoints in ``checkpoint_rank<v>.pt``, and writes its evaluated row to
 system across machines). Rank 0 (torchrun) or the launching process (spawned) then runs
 C-ICRL and the expert rows and merges everything into ``results.json``. The numbers are
 bit for bit those of the default all-in-one-process ``comm=simulated``.
+
+Robustness: the config is checked before anything is computed (unknown keys, values out
+of range; exit code 2, nothing written). Checkpoints and results are written atomically
+and a checkpoint from another configuration is refused on resume. With
+``comm=simulated`` a first SIGINT/SIGTERM finishes the outer iteration, checkpoints it
+and exits with 128 + the signal number, printing the exact command that resumes; a
+second one stops at once. A NaN or inf stops the run (exit 1) naming the outer
+iteration, the inner step and the learner.
 """
 
 from __future__ import annotations
 
 import copy
+import difflib
+import inspect
 import json
+import math
 import os
+import shlex
 import shutil
+import signal
 import sys
 import threading
 import time
@@ -40,10 +53,10 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import get_class, instantiate
+from hydra.utils import get_class, get_object, instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from dicrl_torch.algos.dicrl import DICRL
+from dicrl_torch.algos.dicrl import DICRL, NonFiniteError
 from dicrl_torch.comm import SimulatedCommunicator
 from dicrl_torch.comm.distributed import (
     ConfigMismatchError,
@@ -71,6 +84,182 @@ RunOf = Callable[[int], str]  # learner id -> TensorBoard run name
 def build(cfg, **objects):
     """Instantiate ``cfg`` with built objects as keyword arguments."""
     return instantiate(cfg, _partial_=True)(**objects)
+
+
+# ---------------------------------------------------------------------- config checks
+class ConfigError(ValueError):
+    """The configuration has an unknown key or a value out of range."""
+
+
+def _ge(lo):
+    return lambda x: x >= lo
+
+
+def _in_open(lo, hi):
+    return lambda x: lo < x < hi
+
+
+# key, type, condition, what it must be (and why), an example value. Checked before any
+# computation: a bad value would otherwise surface minutes later, deep in the solver.
+VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
+    ("seed", int, _ge(0), "an int >= 0 (it seeds the demonstrations and evaluation)", "0"),
+    ("n_demonstrations", int, _ge(1), "an int >= 1", "100"),
+    ("eval_episodes", int, _ge(1), "an int >= 1 (evaluation episodes per table row)", "200"),
+    ("expert_temperature", float, _ge(0.0), "a number >= 0 (0: optimal experts)", "0.0"),
+    ("checkpoint_every", int, _ge(1), "an int >= 1 (outer iterations between checkpoints)",
+     "1"),
+    ("resume", bool, None, "true or false", "true"),
+    ("env.model.horizon", int, _ge(1), "an int >= 1 (the horizon T, decisions per episode)",
+     "40"),
+    # γ = 1 is well defined over a finite horizon, and TabularGridModel accepts it.
+    ("env.model.gamma", float, lambda x: 0 < x <= 1, "a number in (0, 1] (the discount γ)",
+     "0.99"),
+    ("env.model.p_success", float, lambda x: 0 < x <= 1,
+     "a number in (0, 1] (the probability that a move succeeds)", "0.8"),
+    ("algo.outer_iterations", int, _ge(1), "an int >= 1", "20"),
+    ("algo.inner_steps", int, _ge(2), "an int >= 2 (K: Algorithm 2 takes K - 1 steps)", "6"),
+    ("algo.inner_step", float, _in_open(0.0, math.inf),
+     "a positive number (the constant step of inner_method=gradient_tracking)", "0.005"),
+    ("algo.steps.alpha_bar", float, _in_open(0.0, math.inf),
+     "a positive number (α(k) = ᾱ/(k+1))", "0.02"),
+    ("algo.steps.beta_bar", float, _in_open(0.0, 1.0),
+     "a number in (0, 1) so that β(n) ∈ (0, 1) (Theorem 1)", "0.5"),
+    ("algo.steps.beta_power", float, lambda x: 0.5 < x <= 1,
+     "a number in (1/2, 1] so that Σβ = ∞ and Σβ² < ∞ (Theorem 1)", "0.6"),
+    ("algo.lsca_curvature", float, _in_open(0.0, math.inf),
+     "a positive number (ρ of the LSCA step)", "300.0"),
+    ("algo.prune_accrued", bool, None, "true or false", "true"),
+    ("algo.init_cost_weights", float, lambda x: 0 <= x <= 1,
+     "a number in [0, 1] (ω_c(0) lives in [0, 1]^d)", "0.0"),
+    ("algo.init_reward_weights", float, None, "a finite number", "0.0"),
+    ("algo.init_multiplier", float, None, "a finite number (λ(0))", "-1.0"),
+    ("algo.threshold", float, _in_open(0.0, 1.0),
+     "a number in (0, 1) (ω_c,j >= threshold marks a learned constraint)", "0.5"),
+    ("algo.prune_min_gain", float | None, _ge(0.0),
+     "null (keep every constraint) or a number >= 0 (nats per trajectory)", "0.001"),
+    ("algo.run_c_icrl", bool, None, "true or false", "true"),
+    ("algo.inner_method", str, lambda x: x in ("paper", "gradient_tracking"),
+     "'paper' or 'gradient_tracking'", "paper"),
+    ("comm.timeout_s", float, _in_open(0.0, math.inf),
+     "a positive number of seconds", "60"),
+]
+
+# Keys of nodes without a _target_ (those with one are checked against its signature).
+KNOWN_KEYS = {
+    "": {"env", "features", "solver", "algo", "graph", "comm", "logger", "name", "seed",
+         "n_demonstrations", "split", "eval_episodes", "expert_temperature",
+         "checkpoint_every", "resume"},
+    "env": {"layout", "model", "true_reward_weights"},
+    "features": {"reward", "cost"},
+    "graph": {"inner", "outer"},
+    "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",
+             "lsca_curvature", "prune_accrued", "init_cost_weights", "init_reward_weights",
+             "init_multiplier", "threshold", "prune_min_gain", "run_c_icrl"},
+}
+_HYDRA_KEYS = {"_target_", "_partial_", "_args_", "_recursive_", "_convert_"}
+
+
+def _type_ok(value, kind) -> bool:
+    if kind is bool or kind is str:
+        return isinstance(value, kind)
+    if isinstance(value, bool):  # bool is an int to Python, never a number here
+        return False
+    if kind is int:
+        return isinstance(value, int)
+    if value is None:
+        return kind == float | None
+    return isinstance(value, int | float) and math.isfinite(value)
+
+
+def _unknown_keys(node, path: str, problems: list[str]) -> None:
+    """Keys of ``node`` (and below) that nothing reads: a misspelt or stray override would
+    otherwise be ignored (``+key=...`` gets past Hydra's struct mode)."""
+    if not isinstance(node, DictConfig):
+        return
+    keys = set(node.keys())
+    known, reader = KNOWN_KEYS.get(path), f"'{path}'" if path else "the top level"
+    if "_target_" in node:
+        target = node["_target_"]
+        try:
+            params = inspect.signature(get_object(target)).parameters
+        except Exception as e:  # noqa: BLE001 - any import failure is a config error
+            problems.append(f"{path}._target_={target!r} cannot be imported ({e}); fix the "
+                            f"class path.")
+            return
+        if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            known = None
+        else:
+            known, reader = set(params) | _HYDRA_KEYS, target
+    if known is not None:
+        for key in sorted(keys - known):
+            full = f"{path}.{key}" if path else key
+            close = difflib.get_close_matches(key, sorted(known - _HYDRA_KEYS), n=1)
+            hint = f"did you mean '{close[0]}'? Remove" if close else "remove"
+            problems.append(f"unknown key '{full}': {reader} takes no option '{key}'; "
+                            f"{hint} it or fix its spelling.")
+    for key in keys:
+        _unknown_keys(node[key], f"{path}.{key}" if path else key, problems)
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Refuse unknown keys and out-of-range values before anything is computed.
+
+    Raises:
+        ConfigError: listing every problem, each naming the key, the value and the fix.
+    """
+    problems: list[str] = []
+    _unknown_keys(cfg, "", problems)
+    for key, kind, ok, must, example in VALUE_RULES:
+        if OmegaConf.select(cfg, key, default="__missing__") == "__missing__":
+            if key != "comm.timeout_s":  # only the distributed backend has a timeout
+                problems.append(f"'{key}' is missing; set it, e.g. {key}={example}.")
+            continue
+        value = OmegaConf.select(cfg, key)
+        if not _type_ok(value, kind) or (ok is not None and value is not None and not ok(value)):
+            problems.append(f"{key}={value!r} is invalid: it must be {must}; set e.g. "
+                            f"{key}={example}.")
+    split = cfg.get("split")
+    if not (OmegaConf.is_list(split) and len(split) >= 1
+            and all(_type_ok(x, int) and x >= 1 for x in split)):
+        problems.append(f"split={_plain(split)} is invalid: it must be a non-empty list of "
+                        f"ints >= 1, one per learner (a learner without trajectories has "
+                        f"nothing to learn from); set e.g. split=[10,20,30,40].")
+    elif _type_ok(cfg.get("n_demonstrations"), int) and sum(split) != cfg.n_demonstrations:
+        problems.append(f"split={_plain(split)} sums to {sum(split)}, not n_demonstrations="
+                        f"{cfg.n_demonstrations}; make them agree (e.g. n_demonstrations="
+                        f"{sum(split)}).")
+    if problems:
+        raise ConfigError(f"{len(problems)} problem(s) in the configuration, nothing was "
+                          f"computed:\n" + "\n".join(f"  - {p}" for p in problems))
+
+
+def _plain(value):
+    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+
+
+# What a checkpoint's training state depends on. Left out: how the run is started,
+# logged, evaluated or stopped (resume, logger, eval_episodes, threshold, ...), and
+# algo.outer_iterations, so that a finished run can be resumed to train for longer.
+CHECKPOINT_KEYS = ("seed", "n_demonstrations", "split", "expert_temperature", "env", "features",
+                   "solver", "graph", "algo")
+CHECKPOINT_IGNORED = ("solver.progress", "algo.outer_iterations", "algo.threshold",
+                      "algo.prune_min_gain", "algo.run_c_icrl")
+
+
+def training_config(cfg) -> dict[str, Any]:
+    """The flattened ``key -> value`` config that a checkpoint must match to resume."""
+    flat: dict[str, Any] = {}
+
+    def walk(node, path):
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{path}.{k}" if path else str(k))
+        elif path not in CHECKPOINT_IGNORED:
+            flat[path] = node
+
+    container = OmegaConf.to_container(cfg, resolve=True)
+    walk({k: container[k] for k in CHECKPOINT_KEYS if k in container}, "")
+    return flat
 
 
 # ---------------------------------------------------------------------- the problem
@@ -237,22 +426,60 @@ class Checkpoints:
         keep_previous: also keep each name's previous save (``<name>:previous``), so that
             learner processes whose last saves are one save apart can agree on a state.
         crash_tags: extra names for the ``DICRL_CRASH_AFTER=<name>:<n>`` fault injection
-            (tests): the process kills itself with SIGKILL right after saving ``n``.
+            (tests): the process sends itself SIGKILL (or ``DICRL_CRASH_SIGNAL``, e.g.
+            ``TERM``) right after saving ``n``, once.
+        config: :func:`training_config` of this run; a checkpoint written under another one
+            is refused on resume (its state would silently continue another problem).
+
+    Raises:
+        ValueError: the checkpoint cannot be read, or was written under another config.
     """
 
     def __init__(self, path: Path, resume: bool, *, keep_previous: bool = False,
-                 crash_tags: tuple[str, ...] = ()) -> None:
+                 crash_tags: tuple[str, ...] = (), config: dict | None = None) -> None:
         self.path, self.keep_previous, self.crash_tags = path, keep_previous, crash_tags
+        self.config, self.crashed = config, False
         self.saved: dict = {}
         if resume and path.exists():
-            # weights_only: tensors and plain containers, never arbitrary pickled objects
-            self.saved = torch.load(path, weights_only=True)
+            self.saved = self._load(path)
+            for state in self.saved.values():
+                self._check_config(state.get("run_config"))
             done = {k: v["outer_iteration"] for k, v in self.saved.items()
                     if not k.endswith(":previous")}
             print(f"resuming from {path} (outer iterations done: {done})")
         elif resume:
             print(f"resume=true but no checkpoint {path.name} in {path.parent}; starting "
                   f"from scratch")
+
+    def _check_config(self, saved: dict | None) -> None:
+        if self.config is None or saved is None or saved == self.config:
+            return
+        keys = sorted(k for k in set(saved) | set(self.config)
+                      if saved.get(k, "<unset>") != self.config.get(k, "<unset>"))
+        diff = "; ".join(f"{k}: {saved.get(k, '<unset>')!r} in the checkpoint, "
+                         f"{self.config.get(k, '<unset>')!r} now" for k in keys[:6])
+        raise ValueError(
+            f"{self.path} was written with a different configuration ({diff}"
+            f"{'; ...' if len(keys) > 6 else ''}). Resume with the overrides of the "
+            f"interrupted run, or start a new run without resume=true (in another "
+            f"hydra.run.dir).")
+
+    @staticmethod
+    def _load(path: Path) -> dict:
+        try:
+            # weights_only: tensors and plain containers, never arbitrary pickled objects
+            saved = torch.load(path, weights_only=True)
+        except Exception as e:
+            raise ValueError(
+                f"{path} cannot be read as a checkpoint ({type(e).__name__}: "
+                f"{str(e).strip().splitlines()[0] if str(e).strip() else ''}); it is not one "
+                f"this program wrote. Delete it to start over, or point hydra.run.dir at the "
+                f"run it belongs to.") from e
+        if not (isinstance(saved, dict) and all(isinstance(v, dict) and "outer_iteration" in v
+                                                for v in saved.values())):
+            raise ValueError(f"{path} holds no trainer states ({type(saved).__name__}), so it "
+                             f"is not a checkpoint of this program; delete it to start over.")
+        return saved
 
     def states(self, name: str) -> list[dict]:
         """The saved states of ``name``, newest first."""
@@ -265,13 +492,26 @@ class Checkpoints:
             self.saved[f"{name}:previous"] = last
         # A copy: the trainer goes on changing its history list and, when pruning, ω_c in
         # place, and this state may be written again (with another name's save).
-        self.saved[name] = copy.deepcopy(trainer.state_dict())
-        tmp = self.path.with_suffix(".tmp")
-        torch.save(self.saved, tmp)
-        tmp.replace(self.path)  # atomic: a crash leaves the previous checkpoint intact
+        self.saved[name] = {**copy.deepcopy(trainer.state_dict()), "run_config": self.config}
+        atomic_write(self.path, lambda tmp: torch.save(self.saved, tmp))
         crash = os.environ.get("DICRL_CRASH_AFTER")  # fault injection for tests
-        if crash in {f"{tag}:{n}" for tag in (name, *self.crash_tags)}:
-            os.kill(os.getpid(), 9)
+        if not self.crashed and crash in {f"{tag}:{n}" for tag in (name, *self.crash_tags)}:
+            self.crashed = True
+            sig = getattr(signal, "SIG" + os.environ.get("DICRL_CRASH_SIGNAL", "KILL"))
+            os.kill(os.getpid(), sig)
+
+
+def atomic_write(path: Path, write: Callable[[Path], Any]) -> None:
+    """``write(tmp)`` then rename ``tmp`` to ``path``: readers see the old file or the new
+    one, never half of one. An exception (or an interrupting signal) removes ``tmp``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        write(tmp)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def log_outer(logger, run_of: RunOf, trainer: DICRL, info: dict, ctx, threshold: float,
@@ -292,17 +532,80 @@ def log_outer(logger, run_of: RunOf, trainer: DICRL, info: dict, ctx, threshold:
             logger.scalar("network", "consensus/max_pairwise_cost_distance", gap, n)
 
 
+class Interrupted(Exception):
+    """SIGINT or SIGTERM stopped the run.
+
+    Attributes:
+        signum: the signal.
+        saved: what was checkpointed on the way out (None: stopped at once; the last
+            atomic checkpoint stays valid).
+    """
+
+    def __init__(self, signum: int, saved: str | None = None) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum, self.saved = signum, saved
+
+
+class StopOnSignal:
+    """SIGINT/SIGTERM handling of the all-in-one-process run (a context manager).
+
+    The first signal during training lets the current outer iteration finish (a state
+    in the middle of one is no consistent checkpoint; an iteration takes seconds), then
+    :func:`train` checkpoints it and raises :class:`Interrupted`. A second signal, or one
+    outside training, raises at once: every checkpoint is written atomically, so the
+    last one stays valid, and everything after training is recomputed on resume.
+    """
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self.training = False
+        self._previous: dict = {}
+
+    def __enter__(self) -> StopOnSignal:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+    def _handle(self, signum: int, frame) -> None:
+        if self.training and self.signum is None:
+            self.signum = signum
+            print(f"\n{signal.Signals(signum).name} received: stopping after this outer "
+                  f"iteration, with a checkpoint (send it again to stop at once)",
+                  file=sys.stderr, flush=True)
+            return
+        raise Interrupted(signum)
+
+
 def train(name: str, trainer: DICRL, ckpt: Checkpoints, logger, run_of: RunOf, cfg,
-          ctx, log_network: bool) -> None:
-    """Train to ``algo.outer_iterations`` with TensorBoard values and checkpoints."""
+          ctx, log_network: bool, stop: StopOnSignal | None = None) -> None:
+    """Train to ``algo.outer_iterations`` with TensorBoard values and checkpoints.
+
+    Raises:
+        Interrupted: ``stop`` caught a signal; the last outer iteration is checkpointed.
+    """
     a = cfg.algo
 
     def after_outer(t: DICRL, info: dict) -> None:
         log_outer(logger, run_of, t, info, ctx, a.threshold, log_network)
         if t.state.outer_iteration % cfg.checkpoint_every == 0:
             ckpt.save(name, t)
+        if stop is not None and stop.signum is not None:
+            stop.training = False  # a further signal now interrupts the save: still safe
+            ckpt.save(name, t)
+            raise Interrupted(stop.signum, f"{name} saved after outer iteration "
+                                           f"{t.state.outer_iteration}")
 
-    trainer.train(a.outer_iterations, callback=after_outer)
+    if stop is not None:
+        stop.training = True
+    try:
+        trainer.train(a.outer_iterations, callback=after_outer)
+    finally:
+        if stop is not None:
+            stop.training = False
     ckpt.save(name, trainer)
 
 
@@ -312,14 +615,12 @@ def make_logger(cfg, out: Path):
 
 
 def write_json(path: Path, obj) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1))
-    tmp.replace(path)  # atomic: a crash never leaves half a file
+    text = json.dumps(obj, indent=1)  # before opening anything: a failure writes nothing
+    atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
-           t_start: float, c_icrl_comm) -> None:
+           t_start: float, c_icrl_comm, stop: StopOnSignal | None = None) -> None:
     """C-ICRL and the expert rows (in this process), then ``results.json`` and the table.
 
     ``d_icrl``: the D-ICRL ``learners`` rows, ``history`` and final ``disagreement``.
@@ -336,7 +637,8 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
         c = make_trainer(cfg, p, [pooled], c_icrl_comm, [pooled.n_trajectories])
         if states := ckpt.states("C-ICRL"):
             c.load_state_dict(states[0])
-        train("C-ICRL", c, ckpt, logger, lambda v: "c_icrl", cfg, p.ctx, log_network=False)
+        train("C-ICRL", c, ckpt, logger, lambda v: "c_icrl", cfg, p.ctx, log_network=False,
+              stop=stop)
         methods["C-ICRL"] = {"D": "×", "NATR": "✓", "learners": evaluate_learners(
             "C-ICRL", c, p, cfg, logger, lambda v: "c_icrl", out)}
         histories["C-ICRL"] = c.history
@@ -364,20 +666,22 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
 
 # ---------------------------------------------------------------------- all in one process
 def run_simulated(cfg, out: Path, t_start: float) -> None:
-    p = build_problem(cfg)
-    announce(cfg, p, out)
-    split = list(cfg.split)
-    logger = make_logger(cfg, out)
-    ckpt = Checkpoints(out / "checkpoint.pt", cfg.resume)
-    trainer = make_trainer(cfg, p, p.shards, build(cfg.comm, n_learners=len(split)), split)
-    if states := ckpt.states("D-ICRL"):
-        trainer.load_state_dict(states[0])
-    run_of = lambda v: f"learner{v}"  # noqa: E731
-    train("D-ICRL", trainer, ckpt, logger, run_of, cfg, p.ctx, log_network=True)
-    rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out)
-    d_icrl = {"learners": rows, "history": trainer.history,
-              "disagreement": trainer.disagreement()}
-    finish(cfg, out, p, d_icrl, logger, ckpt, t_start, build(cfg.comm, n_learners=1))
+    with StopOnSignal() as stop:
+        # The checkpoint is read (and checked against the config) before any computation.
+        ckpt = Checkpoints(out / "checkpoint.pt", cfg.resume, config=training_config(cfg))
+        p = build_problem(cfg)
+        announce(cfg, p, out)
+        split = list(cfg.split)
+        logger = make_logger(cfg, out)
+        trainer = make_trainer(cfg, p, p.shards, build(cfg.comm, n_learners=len(split)), split)
+        if states := ckpt.states("D-ICRL"):
+            trainer.load_state_dict(states[0])
+        run_of = lambda v: f"learner{v}"  # noqa: E731
+        train("D-ICRL", trainer, ckpt, logger, run_of, cfg, p.ctx, log_network=True, stop=stop)
+        rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out)
+        d_icrl = {"learners": rows, "history": trainer.history,
+                  "disagreement": trainer.disagreement()}
+        finish(cfg, out, p, d_icrl, logger, ckpt, t_start, build(cfg.comm, n_learners=1), stop)
 
 
 # ---------------------------------------------------------------------- one process per learner
@@ -428,7 +732,7 @@ def run_learner(comm: DistributedCommunicator, cfg, out: Path, p: Problem,
     shard = shard_for_rank(p.shards, rank, world_size=comm.n_learners)
     trainer = make_trainer(cfg, p, [shard], comm, split, progress=rank == 0)
     ckpt = Checkpoints(out / f"checkpoint_rank{rank}.pt", cfg.resume, keep_previous=True,
-                       crash_tags=(f"D-ICRL@rank{rank}",))
+                       crash_tags=(f"D-ICRL@rank{rank}",), config=training_config(cfg))
     resume_learner(comm, ckpt, trainer)
     logger = make_logger(cfg, out)
     run_of = lambda v: f"learner{v}"  # noqa: E731
@@ -501,13 +805,24 @@ def run_spawned(cfg, out: Path, t_start: float) -> None:
         print(f"error: {e}\n{resume_hint(out)}", file=sys.stderr, flush=True)
         sys.exit(1)
     finish(cfg, out, p, merge_learner_rows(out, len(split), run_id), make_logger(cfg, out),
-           Checkpoints(out / "checkpoint.pt", cfg.resume), t_start,
-           SimulatedCommunicator(n_learners=1))
+           Checkpoints(out / "checkpoint.pt", cfg.resume, config=training_config(cfg)),
+           t_start, SimulatedCommunicator(n_learners=1))
+
+
+def resume_command(out: Path) -> str:
+    """The exact command line that continues this run from its checkpoints."""
+    try:
+        task = list(HydraConfig.get().overrides.task)
+    except ValueError:  # no Hydra context (a spawned learner process)
+        task = []
+    keep = [o for o in task if not o.startswith(("resume=", "hydra.run.dir="))]
+    return shlex.join([sys.executable, sys.argv[0], *keep, "resume=true",
+                       f"hydra.run.dir={out}"])
 
 
 def resume_hint(out: Path) -> str:
     return (f"The last checkpoints (checkpoint_rank<r>.pt) are in {out}; continue with the "
-            f"same overrides plus resume=true hydra.run.dir={out}")
+            f"same overrides plus resume=true hydra.run.dir={out}:\n  {resume_command(out)}")
 
 
 def agree_on_run_dir(comm: DistributedCommunicator, out: Path) -> tuple[Path, str]:
@@ -551,21 +866,39 @@ def run_torchrun(cfg, out: Path, t_start: float) -> None:
         os._exit(1)
     if rank == 0:
         finish(cfg, out, p, merge_learner_rows(out, world_size, run_id),
-               make_logger(cfg, out), Checkpoints(out / "checkpoint.pt", cfg.resume), t_start,
-               SimulatedCommunicator(n_learners=1))
+               make_logger(cfg, out),
+               Checkpoints(out / "checkpoint.pt", cfg.resume, config=training_config(cfg)),
+               t_start, SimulatedCommunicator(n_learners=1))
 
 
 @hydra.main(config_path="../configs", config_name="train", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     t_start = time.perf_counter()
     out = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        check_config(cfg)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr, flush=True)
+        sys.exit(2)
     torch.set_num_threads(int(os.environ.get("DICRL_THREADS", torch.get_num_threads())))
     if not issubclass(get_class(cfg.comm._target_), DistributedCommunicator):
         if int(os.environ.get("WORLD_SIZE", "1")) > 1:
             raise ValueError(f"Started as one of WORLD_SIZE={os.environ['WORLD_SIZE']} "
                              f"processes (torchrun?) with comm={cfg.comm._target_}, which runs "
                              f"every learner in each process; add comm=distributed.")
-        run_simulated(cfg, out, t_start)
+        try:
+            run_simulated(cfg, out, t_start)
+        except Interrupted as e:
+            what = (f"checkpoint {e.saved}" if e.saved else
+                    "stopped at once; the last checkpoint written stays valid")
+            print(f"\ninterrupted by {e} ({what}). Checkpoints are in "
+                  f"{out / 'checkpoint.pt'}; no results.json was written. Resume with:\n"
+                  f"  {resume_command(out)}", file=sys.stderr, flush=True)
+            sys.exit(128 + e.signum)  # the shell's convention for "killed by a signal"
+        except NonFiniteError as e:
+            # The checkpoints hold only finite states; rerun with the changes it suggests.
+            print(f"error: {e}\nno results.json was written.", file=sys.stderr, flush=True)
+            sys.exit(1)
     elif "RANK" in os.environ and "WORLD_SIZE" in os.environ:
         run_torchrun(cfg, out, t_start)
     else:

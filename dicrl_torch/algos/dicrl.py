@@ -54,6 +54,14 @@ from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolutio
 Schedule = MixingSchedule
 
 
+class NonFiniteError(FloatingPointError):
+    """A NaN or inf appeared in a learner's parameters or gradients.
+
+    The message names the quantity, the outer iteration, the inner step (if any) and
+    the learner; the run stops there, so no checkpoint ever holds the bad values.
+    """
+
+
 @dataclass(frozen=True)
 class StepSizes:
     """``α(k) = alpha_bar / (k + 1)`` (inner) and ``β(n) = beta_bar / (n + 1)^beta_power``
@@ -162,6 +170,7 @@ class DICRL:
         self.inner_method, self.inner_step = inner_method, float(inner_step)
         self.logger, self.run_name = logger, run_name
         self._log_rows: list[int] = []  # local learners whose own inner process runs now
+        self._process = 0  # the learner whose ω_c the running inner process is for
         if inner_steps < 2:
             raise ValueError(f"inner_steps (K) must be >= 2, got {inner_steps}.")
         if not lsca_curvature > 0:
@@ -183,9 +192,15 @@ class DICRL:
 
         cw = torch.as_tensor(init_cost_weights, dtype=torch.float64)
         cw = cw.expand(N_L, d).clone() if cw.dim() == 0 else cw.clone()
-        if cw.shape != (N_L, d) or (cw < 0).any() or (cw > 1).any():
+        if cw.shape != (N_L, d) or not ((cw >= 0) & (cw <= 1)).all():  # NaN fails too
             raise ValueError(f"init_cost_weights must be a scalar or [{N_L}, {d}] in [0, 1].")
         rw = torch.as_tensor(init_reward_weights, dtype=torch.float64).expand(lr).clone()
+        if not torch.isfinite(rw).all():
+            raise ValueError(f"init_reward_weights must be finite, got {init_reward_weights}; "
+                             f"give a finite number (0.0 is the default).")
+        if not math.isfinite(float(init_multiplier)):
+            raise ValueError(f"init_multiplier (λ(0)) must be finite, got {init_multiplier}; "
+                             f"give a finite number (-1.0 is the default).")
         eta0 = torch.cat([rw, torch.tensor([float(init_multiplier)], dtype=torch.float64)])
         n = len(local)
         self.state = LearnerState(
@@ -196,6 +211,40 @@ class DICRL:
         self._cost_all = cw  # ω_c of every learner, as last gathered
         self.history: list[dict] = []
         self.solves = 0
+
+    # ------------------------------------------------------------------ numerical guard
+    def _check_finite(self, what: str, values: torch.Tensor, inner_step: int | None = None,
+                      process: int | None = None) -> None:
+        """Raise :class:`NonFiniteError` if a row of ``values`` ``[n_local, ...]`` holds a
+        NaN or inf.
+
+        Checked right after each value is computed and before it is sent, so the learner
+        named is the one where the problem arose, not a neighbour it spread to.
+
+        Args:
+            what: the quantity, as the message names it.
+            values: one row per local learner.
+            inner_step: k within the inner process, or None for outer quantities.
+            process: the learner whose ω_c the inner process is for.
+        """
+        ok = torch.isfinite(values.reshape(values.shape[0], -1)).all(1)
+        if bool(ok.all()):
+            return
+        i = int((~ok).nonzero()[0])
+        where = f"outer iteration {self.state.outer_iteration}"
+        if inner_step is not None:
+            where += f", inner step {inner_step}"
+            if process is not None and process != self.local[i]:
+                where += f" (the inner process for learner {process}'s ω_c)"
+        hint = ("Lower the step sizes (algo.steps.alpha_bar, algo.inner_step, "
+                "algo.steps.beta_bar) or raise algo.lsca_curvature, and solve in float64 "
+                "(solver.dtype=float64)")
+        if getattr(self.solver, "dtype", None) == torch.float32:
+            hint += ("; the solver computes in float32, which overflows beyond ~3.4e38 and "
+                     "loses the policy's accuracy from |V| ~ 1e7 on")
+        raise NonFiniteError(
+            f"{what} of learner {self.local[i]} is not finite (NaN or inf) at {where}: "
+            f"{values[i].flatten()[:8].tolist()}. {hint}.")
 
     # ------------------------------------------------------------------ model pieces
     def solve(self, eta: torch.Tensor, cost_weights: torch.Tensor) -> SoftBellmanSolution:
@@ -236,20 +285,26 @@ class DICRL:
             if k == self.K - 1:
                 break
             grads = self._scaled_gradients(eta, cost_weights, k)
+            self._check_finite("The dual gradient m ∇G", grads, k, self._process)
             eta = self.comm.mix(eta, self.inner_schedule(k), "eta") - a * grads
+            self._check_finite("η = [ω_r, λ]", eta, k, self._process)
         return acc / alpha_sum, eta
 
     def _inner_gradient_tracking(self, cost_weights, eta0):
         eta = eta0.clone()
         g = self._scaled_gradients(eta, cost_weights, 0)
+        self._check_finite("The dual gradient m ∇G", g, 0, self._process)
         s = g
         for k in range(self.K - 1):
             W = self.inner_schedule(k)
             eta = self.comm.mix(eta, W, "eta") - self.inner_step * s
+            self._check_finite("η = [ω_r, λ]", eta, k, self._process)
             if k == self.K - 2:
                 break
             g_new = self._scaled_gradients(eta, cost_weights, k + 1)
+            self._check_finite("The dual gradient m ∇G", g_new, k + 1, self._process)
             s = self.comm.mix(s, W, "inner_tracker") + g_new - g
+            self._check_finite("The inner gradient tracker", s, k + 1, self._process)
             g = g_new
         return eta, eta
 
@@ -282,12 +337,14 @@ class DICRL:
         eta_bar_own = torch.empty_like(st.eta_bar)
         for g in groups:
             self._log_rows = [i for i, v in enumerate(self.local) if v in g]
+            self._process = g[0]
             bar, last = self.inner_process(cost_all[g[0]], st.eta[g[0]])
             for u in g:
                 new_eta[u] = last
                 for i, v in enumerate(self.local):
                     if v == u:
                         eta_bar_own[i] = bar[i]
+        self._check_finite("The averaged η̄", eta_bar_own)
         st.eta, st.eta_bar, st.groups = new_eta, eta_bar_own, groups
 
         # Local gradient approximation at each learner's own (ω_c, η̄).
@@ -295,15 +352,18 @@ class DICRL:
             local_gradient(self.solve(st.eta_bar[i], st.cost_weights[i]), self.stats[i],
                            self.fc, float(st.eta_bar[i, -1]))
             for i in range(len(self.local))])
+        self._check_finite("The local gradient (LGA)", lga)
         W_bar = self.outer_schedule(n)
         if st.tracker is None:
             tracker = lga
         else:
             tracker = self.comm.mix(st.tracker, W_bar, "tracker") + lga - st.last_lga
+        self._check_finite("The gradient tracker y", tracker)
         target = (st.cost_weights + self.n_learners * tracker / self.rho).clamp(0.0, 1.0)
         if self.prune_accrued:
             target = torch.where(self.accrued, 0.0, target)
         half = st.cost_weights + self.steps.beta(n) * (target - st.cost_weights)
+        self._check_finite("ω_c", half)
         st.cost_weights = self.comm.mix(half, W_bar, "cost_weights")
         st.tracker, st.last_lga = tracker, lga
         st.outer_iteration = n + 1

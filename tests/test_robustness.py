@@ -1,0 +1,486 @@
+"""Robustness: bad configurations refused before computing, checkpoints from another
+configuration, SIGTERM/SIGINT and ``kill -9`` followed by ``resume=true``, the privacy
+audit of message contents, extreme weights and the NaN/inf guard of the trainer.
+
+The bad-input catalogue of demonstration files, feature bases and graphs is covered in
+tests/test_demos_storage.py, tests/test_features.py and tests/test_comm_graphs.py; the
+distributed faults in tests/test_comm_distributed.py and tests/test_train_distributed.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fractions
+import importlib.util
+import json
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tiny_dicrl
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+
+from dicrl_torch.algos.dicrl import NonFiniteError, StepSizes
+from dicrl_torch.algos.icrl import model_reward
+from dicrl_torch.comm import ALLOWED_FIELDS, SimulatedCommunicator
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+from dicrl_torch.features.bases import FactoredFeatures, FeatureBasis
+from dicrl_torch.solvers.factored import FactoredSoftBellman
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+# tests/test_configs.py's TINY: 1 expert, T = 8, 2 learners, 3 outer iterations
+TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
+        "algo.outer_iterations=3", "algo.inner_steps=2", "eval_episodes=10",
+        "n_demonstrations=10", "split=[4,6]", "logger=none"]
+
+
+def load_entry_point():
+    """experiments/train.py as a module (it is a script, not part of the package)."""
+    spec = importlib.util.spec_from_file_location("dicrl_train_entry",
+                                                  ROOT / "experiments" / "train.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+entry = load_entry_point()
+
+
+def compose_train(*overrides: str):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name="train", overrides=list(overrides))
+
+
+def run_train(run_dir: Path, *extra: str, env: dict | None = None,
+              timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={run_dir}",
+         *TINY, *extra], capture_output=True, text=True, cwd=ROOT, timeout=timeout,
+        env={**os.environ, **(env or {})})
+
+
+def comparable(run_dir: Path) -> dict:
+    res = json.loads((run_dir / "results.json").read_text())
+    res.pop("wall_s")
+    res["config"].pop("resume")  # how the run was started, not what it computed
+    return res
+
+
+def leftovers(run_dir: Path) -> list[str]:
+    """Files a refused or interrupted run must not leave: results and temporary files."""
+    return sorted(str(p.relative_to(run_dir)) for p in run_dir.rglob("*")
+                  if p.name == "results.json" or p.name.endswith(".tmp"))
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> Path:
+    """The uninterrupted TINY run that every interrupted-and-resumed run must reproduce."""
+    run_dir = tmp_path_factory.mktemp("reference")
+    out = run_train(run_dir)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return run_dir
+
+
+# ---------------------------------------------------------------------- configuration
+@pytest.mark.parametrize("group,option", [
+    ("env", "gridworld"), ("env", "gridworld_open"), ("features/cost", "per_expert"),
+    ("features/cost", "random_mlp"), ("graph", "ring"), ("comm", "distributed"),
+    ("logger", "none")])
+def test_every_shipped_config_passes_the_checks(group, option):
+    entry.check_config(compose_train(f"{group}={option}"))
+
+
+@pytest.mark.parametrize("override,key,must", [
+    ("env.model.horizon=0", "env.model.horizon", "int >= 1"),
+    ("env.model.horizon=2.5", "env.model.horizon", "int >= 1"),
+    ("env.model.gamma=0", "env.model.gamma", "(0, 1]"),
+    ("env.model.gamma=1.5", "env.model.gamma", "(0, 1]"),
+    ("env.model.gamma=nan", "env.model.gamma", "(0, 1]"),
+    ("algo.threshold=1.0", "algo.threshold", "(0, 1)"),
+    ("algo.threshold=0", "algo.threshold", "(0, 1)"),
+    ("algo.steps.alpha_bar=0", "algo.steps.alpha_bar", "positive"),
+    ("algo.steps.alpha_bar=inf", "algo.steps.alpha_bar", "positive"),
+    ("algo.steps.beta_bar=1.5", "algo.steps.beta_bar", "Theorem 1"),
+    ("algo.steps.beta_power=0.5", "algo.steps.beta_power", "Theorem 1"),
+    ("algo.inner_step=-0.1", "algo.inner_step", "positive"),
+    ("algo.inner_steps=1", "algo.inner_steps", "int >= 2"),
+    ("algo.outer_iterations=0", "algo.outer_iterations", "int >= 1"),
+    ("algo.lsca_curvature=0", "algo.lsca_curvature", "positive"),
+    ("algo.init_cost_weights=2", "algo.init_cost_weights", "[0, 1]"),
+    ("algo.init_multiplier=nan", "algo.init_multiplier", "finite"),
+    ("algo.prune_min_gain=-1", "algo.prune_min_gain", "null"),
+    ("algo.inner_method=newton", "algo.inner_method", "gradient_tracking"),
+    ("algo.run_c_icrl=maybe", "algo.run_c_icrl", "true or false"),
+    ("eval_episodes=0", "eval_episodes", "int >= 1"),
+    ("checkpoint_every=0", "checkpoint_every", "int >= 1"),
+    ("seed=-1", "seed", "int >= 0"),
+    ("expert_temperature=-1", "expert_temperature", ">= 0"),
+])
+def test_out_of_range_values_are_refused_naming_key_and_fix(override, key, must):
+    with pytest.raises(entry.ConfigError) as info:
+        entry.check_config(compose_train(override))
+    msg = str(info.value)
+    value = override.split("=", 1)[1]
+    assert f"{key}=" in msg and must in msg and f"set e.g. {key}=" in msg, msg
+    assert value.lower() in msg.lower(), msg
+    assert "1 problem(s)" in msg  # only the bad key is reported
+
+
+@pytest.mark.parametrize("split,match", [
+    ("split=[0,100]", "ints >= 1"),           # a learner shard with zero trajectories
+    ("split=[50,-10,60]", "ints >= 1"),
+    ("split=[]", "non-empty"),
+    ("split=[10,20]", "sums to 30, not n_demonstrations=100"),
+])
+def test_bad_splits_are_refused(split, match):
+    with pytest.raises(entry.ConfigError, match=match):
+        entry.check_config(compose_train(split))
+
+
+def test_every_problem_is_reported_at_once():
+    with pytest.raises(entry.ConfigError) as info:
+        entry.check_config(compose_train("algo.threshold=2", "env.model.gamma=-1",
+                                         "split=[0,100]"))
+    assert "3 problem(s)" in str(info.value)
+
+
+def test_unknown_keys_are_refused_with_a_suggestion():
+    # Hydra's struct mode refuses a new key outright ...
+    with pytest.raises(ConfigCompositionException) as info:
+        compose_train("algo.thresold=0.3")
+    assert "Could not override 'algo.thresold'" in str(info.value)
+    assert "+algo.thresold=0.3" in str(info.value)  # Hydra names the append syntax
+    # ... but "+key=value" appends one that nothing would read: refused here.
+    with pytest.raises(entry.ConfigError) as info:
+        entry.check_config(compose_train("+algo.thresold=0.3", "+solver.dtyp=float64",
+                                         "+seeed=1"))
+    msg = str(info.value)
+    assert "unknown key 'algo.thresold'" in msg and "did you mean 'threshold'?" in msg
+    # a node with a _target_ is checked against the signature of what it builds
+    assert "unknown key 'solver.dtyp'" in msg and "FactoredSoftBellman" in msg
+    assert "did you mean 'dtype'?" in msg
+    assert "unknown key 'seeed'" in msg and "did you mean 'seed'?" in msg
+
+
+def test_a_refused_run_exits_before_computing_and_writes_nothing(tmp_path):
+    out = run_train(tmp_path, "algo.threshold=1.5", "+algo.thresold=0.3")
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert "error: 2 problem(s) in the configuration, nothing was computed" in out.stderr
+    assert "algo.threshold=1.5 is invalid" in out.stderr
+    assert "Traceback" not in out.stderr
+    assert leftovers(tmp_path) == []
+    # nothing but Hydra's own record of the run: no demonstrations, no checkpoint
+    assert {p.name for p in tmp_path.iterdir()} <= {".hydra", "train.log"}
+
+
+# ---------------------------------------------------------------------- checkpoints
+@pytest.fixture(scope="module")
+def tiny():
+    return tiny_dicrl.build_tiny()
+
+
+def test_a_checkpoint_from_another_configuration_is_refused(tmp_path, tiny):
+    t = tiny_dicrl.make_trainer(tiny)
+    t.train(1)
+    path = tmp_path / "checkpoint.pt"
+    config = entry.training_config(compose_train(*TINY))
+    entry.Checkpoints(path, False, config=config).save("D-ICRL", t)
+    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]  # no .tmp left
+    # the same configuration resumes, also with a longer training or another threshold
+    for same in ([], ["algo.outer_iterations=30", "algo.threshold=0.4", "eval_episodes=5"]):
+        ck = entry.Checkpoints(path, True, config=entry.training_config(
+            compose_train(*TINY, *same)))
+        assert ck.states("D-ICRL")[0]["outer_iteration"] == 1
+    other = entry.training_config(compose_train(*TINY, "seed=1", "algo.steps.alpha_bar=0.05"))
+    with pytest.raises(ValueError) as info:
+        entry.Checkpoints(path, True, config=other)
+    msg = str(info.value)
+    assert "different configuration" in msg and "seed: 0 in the checkpoint, 1 now" in msg
+    assert "algo.steps.alpha_bar: 0.02 in the checkpoint, 0.05 now" in msg
+    assert "without resume=true" in msg
+    # a trainer of another shape refuses the state itself (the trainer's own check)
+    other_k = tiny_dicrl.make_trainer(tiny)
+    other_k.K = 4
+    with pytest.raises(ValueError, match="differently configured trainer"):
+        other_k.load_state_dict(t.state_dict())
+
+
+@pytest.mark.parametrize("content", [b"", b"not a checkpoint", b"PK\x03\x04truncated"])
+def test_an_unreadable_checkpoint_is_refused(tmp_path, content):
+    path = tmp_path / "checkpoint.pt"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=r"cannot be read as a checkpoint.*Delete it"):
+        entry.Checkpoints(path, True)
+
+
+def test_a_checkpoint_with_pickled_objects_is_refused(tmp_path):
+    path = tmp_path / "checkpoint.pt"
+    # an arbitrary object: only unpickling (running its reduce code) could restore it
+    torch.save({"D-ICRL": {"outer_iteration": 1, "payload": fractions.Fraction(1, 3)}}, path)
+    with pytest.raises(ValueError, match="cannot be read as a checkpoint"):
+        entry.Checkpoints(path, True)
+    torch.save([1, 2, 3], path)
+    with pytest.raises(ValueError, match="not a checkpoint of this program"):
+        entry.Checkpoints(path, True)
+
+
+# ---------------------------------------------------------------------- crashes
+def test_a_second_signal_stops_at_once():
+    stop = entry.StopOnSignal()
+    with pytest.raises(entry.Interrupted):  # outside training: at once
+        stop._handle(signal.SIGINT, None)
+    stop.training = True
+    stop._handle(signal.SIGTERM, None)  # first: finish the outer iteration
+    assert stop.signum == signal.SIGTERM
+    with pytest.raises(entry.Interrupted) as info:
+        stop._handle(signal.SIGTERM, None)
+    assert info.value.signum == signal.SIGTERM and info.value.saved is None
+    with entry.StopOnSignal() as s:  # installs its handlers and restores the previous
+        assert signal.getsignal(signal.SIGTERM) == s._handle
+    assert signal.getsignal(signal.SIGTERM) != s._handle
+
+
+def test_sigterm_checkpoints_and_the_printed_command_resumes(tmp_path, reference):
+    run_dir = tmp_path / "run"
+    # the process sends itself SIGTERM right after checkpointing outer iteration 1
+    stopped = run_train(run_dir, env={"DICRL_CRASH_AFTER": "D-ICRL:1",
+                                      "DICRL_CRASH_SIGNAL": "TERM"})
+    assert stopped.returncode == 128 + signal.SIGTERM, stopped.stderr[-3000:]
+    err = stopped.stderr
+    assert "SIGTERM received: stopping after this outer iteration" in err
+    assert "interrupted by SIGTERM (checkpoint D-ICRL saved after outer iteration 1)" in err
+    assert leftovers(run_dir) == []
+    saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert saved["D-ICRL"]["outer_iteration"] == 1
+    command = err.strip().splitlines()[-1].strip()
+    assert err.strip().splitlines()[-2].endswith("Resume with:")
+    argv = shlex.split(command)
+    assert argv[-2:] == ["resume=true", f"hydra.run.dir={run_dir}"]
+    resumed = subprocess.run(argv, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "outer iterations done: {'D-ICRL': 1}" in resumed.stdout
+    assert comparable(run_dir) == comparable(reference)
+
+
+def test_kill_9_at_a_random_outer_iteration_then_resume(tmp_path, reference):
+    rng = np.random.default_rng(20240611)
+    method = str(rng.choice(["D-ICRL", "C-ICRL"]))  # the trainer and outer iteration
+    n = int(rng.integers(1, 4))                     # after whose checkpoint it dies
+    crashed = run_train(tmp_path, env={"DICRL_CRASH_AFTER": f"{method}:{n}"})
+    assert crashed.returncode == -9, (method, n, crashed.stderr[-2000:])
+    assert not (tmp_path / "results.json").exists()
+    resumed = run_train(tmp_path, "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert comparable(tmp_path) == comparable(reference), (method, n)
+
+
+@pytest.mark.slow  # ~1 min: several random moments, signals sent from outside
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_kill_9_or_sigint_at_a_random_moment_then_resume(tmp_path, reference, seed):
+    rng = np.random.default_rng(seed)
+    sig = signal.SIGKILL if seed != 1 else signal.SIGINT
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={tmp_path}",
+         *TINY, "algo.outer_iterations=3"], cwd=ROOT, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    time.sleep(float(rng.uniform(3.0, 9.0)))  # start-up takes ~4 s on 2 cores
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    if sig == signal.SIGINT and proc.returncode != 0:
+        assert proc.returncode == 128 + signal.SIGINT, err[-2000:]
+        assert "Resume with:" in err
+    resumed = run_train(tmp_path, "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert comparable(tmp_path) == comparable(reference)
+
+
+# ---------------------------------------------------------------------- privacy
+class ContentRecorder(SimulatedCommunicator):
+    """Keeps a copy of every value sent, not only its field and shape."""
+
+    def __init__(self, n_learners: int) -> None:
+        super().__init__(n_learners, record=True)
+        self.sent: list[tuple[str, torch.Tensor]] = []
+
+    def all_gather(self, values, field):
+        out = super().all_gather(values, field)
+        self.sent.extend((field, row.clone()) for row in values)
+        return out
+
+
+@pytest.mark.parametrize("inner_method", ["paper", "gradient_tracking"])
+def test_messages_hold_only_documented_fields_and_no_local_statistics(tiny, inner_method):
+    comm = ContentRecorder(len(tiny_dicrl.SPLIT))
+    # one shared initial ω_c: one inner process serves all learners (fast; tested equal)
+    t = tiny_dicrl.make_trainer(tiny, communicator=comm, inner_method=inner_method,
+                                init_cost=0.3)
+    t.train(2)
+    t.disagreement()
+    d, p = t.fc.dim, t.fr.dim + 1
+    sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,), "inner_tracker": (p,)}
+    assert set(sizes) == set(ALLOWED_FIELDS)
+    fields = {f for f, _ in comm.sent}
+    expected = {"eta", "cost_weights", "tracker"} | (
+        {"inner_tracker"} if inner_method == "gradient_tracking" else set())
+    assert fields == expected
+    assert len(comm.sent) == len(comm.messages)
+    private = [x for st in t.stats for x in (st.mu_r_hat, st.cost_accrual)]
+    for field, value in comm.sent:
+        assert tuple(value.shape) == sizes[field] and value.dtype == torch.float64
+        # neither μ̂_r nor the cost accrual (b̂ = ω_c · accrual) of any learner
+        for x in private:
+            assert not (value.shape == x.shape and torch.allclose(value, x)), field
+
+
+# ---------------------------------------------------------------------- numerics
+@pytest.mark.parametrize("lam", [1e6, -1e6])
+@pytest.mark.parametrize("reward_weight", [1.0, 1e6])
+def test_extreme_weights_give_finite_values_policies_and_occupancies(tiny, lam,
+                                                                      reward_weight):
+    solver, rb, cb, _ = tiny
+    fr, fc = rb(), cb()
+    reward = model_reward(fr, fc, torch.full((fr.dim,), reward_weight, dtype=torch.float64),
+                          lam, torch.full((fc.dim,), 0.5, dtype=torch.float64))
+    sol = solver.solve(reward)  # float64
+    m = solver.model
+    assert torch.isfinite(sol.V).all()
+    cells = torch.cartesian_prod(*[torch.arange(m.n_cells)] * m.n_experts)
+    for t in (0, m.horizon - 1):
+        pi = sol.policy_at(t, cells)
+        assert torch.isfinite(pi).all()
+        assert torch.allclose(pi.sum(1), torch.ones(len(cells), dtype=pi.dtype))
+    discounted_steps = sum(m.gamma**t for t in range(m.horizon))
+    assert torch.isfinite(sol.local_occupancy).all()
+    assert torch.isfinite(sol.state_occupancy).all()
+    assert torch.allclose(sol.local_occupancy.sum((1, 2)),
+                          torch.full((m.n_experts,), discounted_steps, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("kw", [{"init_multiplier": 1e6}, {"init_multiplier": -1e6},
+                                {"init_reward_weights": 1e6}])
+def test_the_trainer_stays_finite_at_extreme_weights(tiny, kw):
+    t = tiny_dicrl.make_trainer(tiny, **kw)
+    t.train(2)
+    for x in (t.state.cost_weights, t.state.eta_bar, t.state.tracker):
+        assert torch.isfinite(x).all()
+
+
+def poison(t, learner: int) -> None:
+    """Give local learner ``learner`` an infinite μ̂_r: its next dual gradient is inf."""
+    st = t.stats[learner]
+    t.stats[learner] = dataclasses.replace(st, mu_r_hat=torch.full_like(st.mu_r_hat,
+                                                                        float("inf")))
+
+
+def test_nan_or_inf_stops_the_run_naming_iteration_step_and_learner(tiny):
+    t = tiny_dicrl.make_trainer(tiny)
+    t.train(1)
+    before = t.state_dict()
+    poison(t, 2)
+    with pytest.raises(NonFiniteError) as info:
+        t.train(3)
+    msg = str(info.value)
+    assert isinstance(info.value, FloatingPointError)
+    assert "dual gradient m ∇G of learner 2" in msg
+    assert "outer iteration 1, inner step 0" in msg
+    assert "inner process for learner 0's ω_c" in msg
+    assert "Lower the step sizes" in msg and "solver.dtype=float64" in msg
+    assert "float32" not in msg  # the tiny solver already computes in float64
+    # the state is not advanced past the last finite iteration
+    assert t.state.outer_iteration == 1
+    assert torch.equal(t.state.cost_weights, before["cost_weights"])
+
+
+def test_an_overflowing_multiplier_is_caught(tiny):
+    t = tiny_dicrl.make_trainer(tiny, init_multiplier=-1e300)
+    with pytest.raises(NonFiniteError, match=r"learner \d is not finite .* at outer "
+                                             r"iteration 0, inner step 0"):
+        t.train(1)
+
+
+def test_a_float32_solver_is_named_in_the_hint(tiny):
+    solver, rb, cb, shards = tiny
+    f32 = FactoredSoftBellman(model=solver.model, dtype=torch.float32)
+    t = tiny_dicrl.make_trainer((f32, rb, cb, shards), inner_method="gradient_tracking")
+    poison(t, 0)
+    with pytest.raises(NonFiniteError, match="computes in float32.*overflows"):
+        t.train(1)
+
+
+@pytest.mark.parametrize("kw,match", [
+    ({"init_multiplier": float("nan")}, "init_multiplier"),
+    ({"init_reward_weights": float("inf")}, "init_reward_weights"),
+    ({"init_cost": float("nan")}, "init_cost_weights"),
+])
+def test_non_finite_initial_values_are_refused_before_computing(tiny, kw, match):
+    with pytest.raises(ValueError, match=match):
+        tiny_dicrl.make_trainer(tiny, **kw)
+    with pytest.raises(ValueError, match="alpha_bar"):
+        StepSizes(alpha_bar=float("nan"))
+
+
+def test_a_run_that_turns_non_finite_exits_non_zero_without_results(tmp_path):
+    out = run_train(tmp_path, "algo.steps.alpha_bar=1e308")  # η overflows at once
+    assert out.returncode == 1, out.stderr[-2000:]
+    assert "error: " in out.stderr and "is not finite (NaN or inf) at outer iteration 0" in (
+        out.stderr)
+    assert "η = [ω_r, λ] of learner 0" in out.stderr and "inner step 0" in out.stderr
+    assert "Lower the step sizes" in out.stderr and "Traceback" not in out.stderr
+    assert leftovers(tmp_path) == []
+
+
+# ---------------------------------------------------------------------- feature bases
+class BadBasis(FeatureBasis):
+    """A cost basis whose table is whatever the test gives it."""
+
+    def __init__(self, model, local, joint=None, dim=None):
+        super().__init__(model)
+        self.names = [f"f{j}" for j in range(dim or local.shape[-1])]
+        self._local, self._joint = local, joint
+
+    def build(self):
+        if self._joint is None:
+            return FactoredFeatures(local=self._local)
+        return FactoredFeatures(local=self._local, joint=self._joint,
+                                joint_columns=torch.tensor([0]))
+
+
+@pytest.fixture(scope="module")
+def grid_model():
+    return TabularGridModel(layout=GridLayout.open_grid(3, 2), horizon=3)
+
+
+@pytest.mark.parametrize("case,match", [
+    ("above", r"leave \[0, 1.0\].*rescale"), ("negative", r"leave \[0, 1.0\]"),
+    ("nan", "non-finite"), ("inf", "non-finite"), ("width", "expected"),
+    ("joint", r"leave \[0, 1.0\]")])
+def test_a_basis_outside_0_d_or_of_the_wrong_width_is_refused(grid_model, case, match):
+    m = grid_model
+    shape = (m.n_experts, m.n_cells, m.n_actions, 2)
+    local = torch.zeros(shape, dtype=torch.float64)
+    joint, dim = None, None
+    if case == "above":
+        local[0, 0, 0, 1] = 0.8
+        local[1, 3, 0, 1] = 0.8  # each term <= 1, but their sum reaches 1.6 > max_value
+    elif case == "negative":
+        local[1, 2, 3, 0] = -0.1
+    elif case in ("nan", "inf"):
+        local[0, 0, 0, 0] = float(case)
+    elif case == "width":
+        dim = 3  # names say 3 features, the table holds 2
+    else:
+        local[0, 0, 0, 0] = 0.5
+        joint = torch.zeros(m.n_states, 1, dtype=torch.float64)
+        joint[4] = 0.7  # 0.5 + 0.7 on feature 0
+    with pytest.raises(ValueError, match=match):
+        BadBasis(m, local, joint, dim)()
