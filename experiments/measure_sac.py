@@ -1,0 +1,63 @@
+"""Measure the SAC-style constrained solver's throughput (env steps and gradient updates).
+
+    .venv/bin/python experiments/measure_sac.py                    # n_envs 1 and 4, 3 repeats
+    .venv/bin/python experiments/measure_sac.py --steps 4000 --device cuda
+
+For each ``n_envs``: a solver with the default hyper-parameters (batch 256, 64x64
+networks, one gradient step per vectorised env step, cell-occupancy cost basis with 201
+features), a warm-up until learning has started, then ``--steps`` more env steps timed.
+Prints one JSON line per setting with the median over ``--repeat`` runs of env steps/s
+and gradient updates/s, on one torch thread.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
+from dicrl_torch.solvers.sac import SACConstrainedSolver
+
+
+def one_run(n_envs: int, steps: int, device: str, seed: int) -> tuple[float, float]:
+    solver = SACConstrainedSolver(
+        reward_basis=DoorLocationRewardBasis(), cost_basis=CellOccupancyCostBasis(),
+        seed=seed, n_envs=n_envs, device=device, learning_starts=256, n_eval_episodes=1)
+    eta = np.array([1.0, 0.5, 1.0, 0.5, -1.0])
+    wc = np.full(solver.l_c, 0.1)
+    solver.solve(eta, wc, 512, n_eval_episodes=1)  # warm-up: past learning_starts
+    updates0 = solver.model._n_updates
+    t0 = time.perf_counter()
+    solver.model.learn(total_timesteps=steps, reset_num_timesteps=False)
+    dt = time.perf_counter() - t0
+    updates = solver.model._n_updates - updates0
+    solver.close()
+    return steps / dt, updates / dt
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n-envs", type=int, nargs="+", default=[1, 4])
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    for n_envs in args.n_envs:
+        runs = [one_run(n_envs, args.steps, args.device, seed) for seed in range(args.repeat)]
+        print(json.dumps({
+            "n_envs": n_envs, "device": args.device, "threads": args.threads,
+            "env_steps_per_s": round(statistics.median(r[0] for r in runs), 1),
+            "grad_steps_per_s": round(statistics.median(r[1] for r in runs), 1),
+            "runs": [[round(a, 1), round(b, 1)] for a, b in runs],
+        }))
+
+
+if __name__ == "__main__":
+    main()

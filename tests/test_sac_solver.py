@@ -1,0 +1,280 @@
+"""Tests of the SAC-style constrained solver (dicrl_torch/solvers/sac.py).
+
+Kept short (a few thousand env steps in all) and on one CPU thread, so that the numbers
+are reproducible and the file runs in well under a minute.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+
+from dicrl_torch.demos.drone_demos import make_drone_demonstrations
+from dicrl_torch.envs.drones import JointDroneEnv, joint_obs_to_state
+from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
+from dicrl_torch.solvers.sac import (
+    FeatureReplayBuffer,
+    SACConstrainedSolver,
+    discounted_demo_feature_sums,
+    joint_obs_from_states,
+)
+
+torch.set_num_threads(1)
+
+L_R, L_C = 4, 201
+GAMMA = 0.95
+
+
+def make_solver(seed: int = 0, **kwargs) -> SACConstrainedSolver:
+    args = dict(reward_basis=DoorLocationRewardBasis(), cost_basis=CellOccupancyCostBasis(),
+                seed=seed, n_envs=2, gamma=GAMMA, learning_starts=100, batch_size=32,
+                env_kwargs={"max_steps": 30}, n_eval_episodes=4)
+    args.update(kwargs)
+    return SACConstrainedSolver(**args)
+
+
+def random_weights(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    eta = np.concatenate([rng.uniform(0, 2, L_R), [-rng.uniform(0.5, 3)]])
+    return eta, rng.uniform(0, 1, L_C)
+
+
+@pytest.fixture(scope="module")
+def filled() -> SACConstrainedSolver:
+    """A solver whose buffer holds 200 transitions (2 envs, episodes of 30 steps)."""
+    solver = make_solver(seed=1, learning_starts=10_000)  # random actions, no updates
+    eta, wc = random_weights(np.random.default_rng(0))
+    solver.solve(eta, wc, 200, n_eval_episodes=2)
+    return solver
+
+
+def hand_rewards(buf: FeatureReplayBuffer, b: np.ndarray, e: np.ndarray, eta: np.ndarray,
+                 wc: np.ndarray) -> np.ndarray:
+    phi_r = buf.reward_features[b, e].astype(np.float64)
+    phi_c = buf.cost_features[b, e].astype(np.float64)
+    return buf.reward_scale[b, e] * (phi_r @ eta[:-1] + eta[-1] * (phi_c @ wc))
+
+
+# ---------------------------------------------------------------------------- buffer
+def test_changing_eta_changes_sampled_rewards_of_stored_transitions(filled):
+    solver, buf = filled, filled.replay_buffer
+    assert buf.pos == 100 and buf.n_envs == 2
+    rng = np.random.default_rng(5)
+    eta1, wc1 = random_weights(rng)
+    eta2, wc2 = random_weights(rng)
+
+    solver.set_weights(eta1, wc1)
+    s1 = buf.sample(64)
+    b1, e1 = buf.last_sample_indices
+    # Exact: the sampled rewards are the features stored with each transition, weighted
+    # by the current weights (float64, then float32 as SB3 stores rewards).
+    expect1 = hand_rewards(buf, b1, e1, eta1, wc1).astype(np.float32)
+    assert torch.equal(s1.rewards, torch.from_numpy(expect1).reshape(-1, 1))
+
+    solver.set_weights(eta2, wc2)  # new η and ω_c: nothing is re-added to the buffer
+    s2 = buf.sample(64)
+    b2, e2 = buf.last_sample_indices
+    expect2 = hand_rewards(buf, b2, e2, eta2, wc2).astype(np.float32)
+    assert torch.equal(s2.rewards, torch.from_numpy(expect2).reshape(-1, 1))
+    # The very transitions sampled under η1 now carry η2's rewards.
+    again = buf.compute_rewards(b1, e1)
+    np.testing.assert_array_equal(again, hand_rewards(buf, b1, e1, eta2, wc2))
+    assert not np.allclose(again, hand_rewards(buf, b1, e1, eta1, wc1))
+
+    # solve(..., timesteps=0) is the trainer's path: it relabels the buffer as well.
+    solver.solve(eta1, wc1, 0, n_eval_episodes=1)
+    np.testing.assert_array_equal(buf.compute_rewards(b1, e1), hand_rewards(buf, b1, e1,
+                                                                            eta1, wc1))
+
+
+def test_stored_features_are_those_of_the_next_state(filled):
+    buf = filled.replay_buffer
+    n = buf.pos
+    states = buf.next_states[:n]  # [n, 2 envs, 2, 4]
+    obs_states = joint_obs_to_state(buf.next_observations[:n].astype(np.float64))
+    np.testing.assert_allclose(states, obs_states, atol=1e-5)  # obs are float32
+    phi_c = CellOccupancyCostBasis()(states).numpy()
+    np.testing.assert_array_equal(buf.cost_features[:n], phi_c)  # indicators: exact
+    phi_r = DoorLocationRewardBasis()(states).numpy()
+    np.testing.assert_allclose(buf.reward_features[:n], phi_r, rtol=1e-6)
+    # Timeouts (max_steps) are truncations, not absorbing terminals.
+    assert buf.timeouts[:n].sum() > 0
+    np.testing.assert_array_equal(buf.reward_scale[:n], 1.0)
+
+
+def test_terminal_transition_gets_absorbing_value():
+    env = JointDroneEnv()
+    kw = dict(reward_basis=DoorLocationRewardBasis(), cost_basis=CellOccupancyCostBasis(),
+              gamma=0.9)
+    buf = FeatureReplayBuffer(10, env.observation_space, env.action_space, "cpu", n_envs=2,
+                              **kw)
+    obs, info = env.reset(seed=0)
+    act = np.zeros((2, 4), np.float32)
+    infos = [{"state": info["state"]}, {"state": info["state"], "TimeLimit.truncated": True}]
+    buf.add(np.stack([obs, obs]), np.stack([obs, obs]), act, np.zeros(2), np.array([1, 1]),
+            infos)
+    np.testing.assert_allclose(buf.reward_scale[0], [10.0, 1.0])  # 1 / (1 - γ); timeout 1
+    buf.set_weights([1.0, 0, 0, 0], -1.0, np.zeros(L_C))
+    r = buf.compute_rewards(np.array([0, 0]), np.array([0, 1]))
+    np.testing.assert_allclose(r, 10.0 * np.array([1.0, 0.1]) * buf.reward_features[0, :, 0])
+    with pytest.raises(ValueError, match="optimize_memory_usage"):
+        FeatureReplayBuffer(10, env.observation_space, env.action_space, "cpu",
+                            optimize_memory_usage=True, **kw)
+
+
+def test_sampling_before_weights_and_bad_weights_raise():
+    buf = FeatureReplayBuffer(8, spaces.Box(-20, 20, (20,)), spaces.Box(-1, 1, (4,)), "cpu",
+                              reward_basis=DoorLocationRewardBasis(),
+                              cost_basis=CellOccupancyCostBasis(), gamma=0.9)
+    with pytest.raises(RuntimeError, match="set_weights"):
+        buf.compute_rewards(np.array([0]), np.array([0]))
+    with pytest.raises(ValueError, match=r"reward_weights must have shape \[4\]"):
+        buf.set_weights(np.ones(5), -1.0, np.ones(L_C))
+    with pytest.raises(ValueError, match="multiplier"):
+        buf.set_weights(np.ones(4), float("nan"), np.ones(L_C))
+
+
+# ---------------------------------------------------------------------------- solver
+def test_ent_coef_fixed_and_warm_start_keeps_networks_and_buffer():
+    solver = make_solver(seed=2, ent_coef=0.7)
+    model = solver.model
+    eta, wc = random_weights(np.random.default_rng(1))
+    actor, critic, buf = model.actor, model.critic, model.replay_buffer
+    solver.solve(eta, wc, 200, n_eval_episodes=1)
+    params1 = [p.detach().clone() for p in actor.parameters()]
+    assert solver.num_timesteps == 200 and buf.pos == 100
+
+    eta2, wc2 = random_weights(np.random.default_rng(2))
+    solver.solve(eta2, wc2, 100, n_eval_episodes=1)
+    assert solver.model is model and model.actor is actor and model.critic is critic
+    assert model.replay_buffer is buf and buf.pos == 150  # appended, not reset
+    assert solver.num_timesteps == 300  # counting went on
+    assert any(not torch.equal(a, p) for a, p in zip(params1, actor.parameters(), strict=True))
+    # The temperature never moved: no optimiser, the tensor still 0.7.
+    assert model.ent_coef_optimizer is None and model.log_ent_coef is None
+    assert float(model.ent_coef_tensor) == pytest.approx(0.7)
+    np.testing.assert_array_equal(buf.cost_weights, wc2)
+
+
+@pytest.mark.parametrize("bad", ["auto", "auto_0.1", 0.0, -1.0, float("nan")])
+def test_ent_coef_must_be_fixed_positive(bad):
+    with pytest.raises(ValueError, match="ent_coef"):
+        make_solver(ent_coef=bad)
+
+
+def test_bad_arguments_raise_value_errors():
+    with pytest.raises(ValueError, match="seed"):
+        make_solver(seed=None)
+    with pytest.raises(ValueError, match="sac_kwargs must not set 'ent_coef'"):
+        make_solver(sac_kwargs={"ent_coef": "auto"})
+    solver = make_solver()
+    with pytest.raises(ValueError, match=r"eta must have shape \[5\]"):
+        solver.solve(np.ones(4), np.ones(L_C), 0)
+    with pytest.raises(ValueError, match=r"cost_weights must have shape \[201\]"):
+        solver.solve(np.ones(5), np.ones(3), 0)
+    with pytest.raises(ValueError, match="timesteps"):
+        solver.solve(np.ones(5), np.ones(L_C), -1)
+
+
+def test_feature_expectations_shapes_and_range():
+    solver = make_solver(seed=3)
+    eta, wc = random_weights(np.random.default_rng(3))
+    sol = solver.solve(eta, wc, 0, n_eval_episodes=6)
+    assert sol.mu_r.shape == (L_R,) and sol.mu_c.shape == (L_C,)
+    assert sol.mu_r_se.shape == (L_R,) and sol.mu_c_se.shape == (L_C,)
+    assert sol.reward_sums.shape == (6, L_R) and sol.cost_sums.shape == (6, L_C)
+    assert torch.equal(sol.feature_expectation(solver.reward_basis), sol.mu_r)
+    assert torch.equal(sol.feature_expectation("cost"), sol.mu_c)
+    with pytest.raises(ValueError, match="reward_basis or cost_basis"):
+        sol.feature_expectation(DoorLocationRewardBasis())
+    # Features lie in [0, max_value], so discounted sums lie in [0, max / (1 - γ)].
+    for sums, basis in ((sol.reward_sums, solver.reward_basis),
+                        (sol.cost_sums, solver.cost_basis)):
+        assert sums.min() >= 0 and sums.max() <= basis.max_value / (1 - GAMMA) + 1e-9
+    # One-hot cells: each drone's block sums to the episode's discount mass (30 steps,
+    # timeouts: no absorbing bonus).
+    assert torch.equal(sol.lengths, torch.full((6,), 30))
+    mass = (1 - GAMMA**30) / (1 - GAMMA)
+    blocks = sol.cost_sums[:, :200].reshape(6, 2, 100).sum(-1)
+    torch.testing.assert_close(blocks, torch.full((6, 2), mass, dtype=torch.float64))
+    j, se = sol.cost_value()
+    assert j == pytest.approx(float(sol.mu_c @ torch.from_numpy(wc)))
+    assert se > 0 and torch.all(sol.mu_r_se > 0)
+    assert 0.0 <= sol.success_rate <= 1.0 and 0.0 <= sol.violation_rate <= 1.0
+
+
+def test_same_seed_same_numbers_and_caller_rng_untouched():
+    eta, wc = random_weights(np.random.default_rng(4))
+    torch_state, np_state = torch.get_rng_state(), np.random.get_state()  # noqa: NPY002
+    runs = []
+    for seed in (7, 7, 8):
+        solver = make_solver(seed=seed)
+        sol = solver.solve(eta, wc, 150)
+        runs.append((sol, [p.detach().clone() for p in solver.model.actor.parameters()]))
+    (a, pa), (b, pb), (c, pc) = runs
+    assert torch.equal(a.reward_sums, b.reward_sums) and torch.equal(a.cost_sums, b.cost_sums)
+    assert all(torch.equal(x, y) for x, y in zip(pa, pb, strict=True))
+    assert not torch.equal(a.reward_sums, c.reward_sums)
+    assert not all(torch.equal(x, y) for x, y in zip(pa, pc, strict=True))
+    # The solver ran on its own streams: the caller's global generators did not move.
+    assert torch.equal(torch.get_rng_state(), torch_state)
+    after = np.random.get_state()  # noqa: NPY002
+    assert np.array_equal(after[1], np_state[1]) and after[2] == np_state[2]
+
+
+def test_short_training_increases_a_trivial_reward():
+    # Reward: progress of both drones towards their doors. At temperature 0.1 relative
+    # to weights 5 (i.e. ent_coef 1 at weights 50) SAC learns it in ~1.5k steps.
+    solver = make_solver(seed=0, n_envs=1, ent_coef=0.1, learning_rate=1e-3, batch_size=64,
+                         learning_starts=200, env_kwargs={"max_steps": 40},
+                         n_eval_episodes=16)
+    eta = np.array([5.0, 0.0, 5.0, 0.0, 0.0])
+    w = torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=torch.float64)
+    before = solver.solve(eta, np.zeros(L_C), 0)
+    after = solver.solve(eta, np.zeros(L_C), 1500)
+    gain = float((after.mu_r - before.mu_r) @ w)
+    var = (before.reward_sums @ w).var() + (after.reward_sums @ w).var()
+    se = float((var / 16).sqrt())  # standard error of the difference of the means
+    assert gain > 2 * se and gain > 0.2, (gain, se)
+
+
+# ---------------------------------------------------------------- demonstrations
+@pytest.fixture(scope="module")
+def demos():
+    return make_drone_demonstrations(2, rng=np.random.default_rng(0))
+
+
+def test_log_likelihood_matches_sb3_density(demos):
+    solver = make_solver(seed=5)
+    per = solver.log_likelihood(demos, per_pair=True)
+    assert per.shape == (2,) and torch.isfinite(per).all()
+    assert solver.log_likelihood(demos) == pytest.approx(float(per.sum()))
+    # Cross-check the first step (both drones fly) against SB3's own squashed density.
+    obs = torch.from_numpy(joint_obs_from_states(demos.states[:, 0]))
+    act = torch.tensor(demos.actions[:, 0].reshape(2, 4), dtype=torch.float32)
+    actor = solver.model.actor
+    with torch.no_grad():
+        mean, log_std, _ = actor.get_action_dist_params(obs)
+        sb3 = actor.action_dist.proba_distribution(mean, log_std).log_prob(act)
+    # Demonstrations cut to their first step isolate that step's log-density.
+    one = type(demos)(states=demos.states[:, :2], actions=demos.actions[:, :1],
+                      lengths=np.ones(2, np.int64), dt=demos.dt)
+    torch.testing.assert_close(solver.log_likelihood(one, per_pair=True), sb3.double(),
+                               rtol=1e-4, atol=1e-4)
+
+
+def test_joint_obs_round_trip_and_demo_feature_sums(demos):
+    env = JointDroneEnv()
+    obs, info = env.reset(seed=3)
+    np.testing.assert_array_equal(joint_obs_from_states(info["state"]), obs)
+    basis = DoorLocationRewardBasis()
+    sums = discounted_demo_feature_sums(demos, basis, 0.9)
+    assert sums.shape == (2, L_R)
+    k, L = 0, int(demos.lengths[0])
+    phi = basis(demos.states[k, 1:L + 1]).double()  # [L, l]
+    w = 0.9 ** torch.arange(L, dtype=torch.float64)
+    w[-1] /= 0.1
+    torch.testing.assert_close(sums[k], w @ phi)
+    plain = discounted_demo_feature_sums(demos, basis, 0.9, absorbing=False)
+    torch.testing.assert_close(plain[k], (0.9 ** torch.arange(L, dtype=torch.float64)) @ phi)
