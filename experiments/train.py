@@ -580,6 +580,20 @@ class StopOnSignal:
         raise Interrupted(signum)
 
 
+def interrupt_on_signals() -> None:
+    """SIGINT/SIGTERM raise :class:`Interrupted` at once (learner processes of a
+    distributed run). A learner cannot finish its outer iteration alone: the others
+    would wait for it at the next exchange. Its checkpoints are written atomically, so
+    the last one stays valid, and resume lets a learner that is one save behind catch up.
+    """
+
+    def handle(signum: int, frame) -> None:
+        raise Interrupted(signum)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, handle)
+
+
 def train(name: str, trainer: DICRL, ckpt: Checkpoints, logger, run_of: RunOf, cfg,
           ctx, log_network: bool, stop: StopOnSignal | None = None) -> None:
     """Train to ``algo.outer_iterations`` with TensorBoard values and checkpoints.
@@ -777,6 +791,7 @@ def spawned_learner(rank: int, world_size: int, init_method: str, cfg_yaml: str,
     # tqdm's default multiprocessing lock would be a named semaphore here (spawned
     # process), which the process's final os._exit leaks; a thread lock suffices.
     tqdm.set_lock(threading.RLock())
+    interrupt_on_signals()
     cfg = OmegaConf.create(cfg_yaml)
     comm = build(cfg.comm, init_method=init_method, rank=rank, world_size=world_size)
     comm.check_same_config(cfg_yaml)
@@ -793,6 +808,7 @@ def run_spawned(cfg, out: Path, t_start: float) -> None:
     threads = int(os.environ.get("DICRL_THREADS", max(1, torch.get_num_threads() // len(split))))
     run_id = uuid.uuid4().hex
     print(f"starting {len(split)} learner processes ({threads} thread(s) each)", flush=True)
+    interrupt_on_signals()  # on a signal, spawn_learners stops every learner on its way out
     try:
         # No overall time limit: every wait between learners is bounded by comm.timeout_s,
         # and once one process fails the others are stopped after a grace period.
@@ -804,6 +820,10 @@ def run_spawned(cfg, out: Path, t_start: float) -> None:
             print(first, file=sys.stderr)
         print(f"error: {e}\n{resume_hint(out)}", file=sys.stderr, flush=True)
         sys.exit(1)
+    except Interrupted as e:
+        print(f"\ninterrupted by {e}: every learner process was stopped; no results.json "
+              f"was written. {resume_hint(out)}", file=sys.stderr, flush=True)
+        sys.exit(128 + e.signum)
     finish(cfg, out, p, merge_learner_rows(out, len(split), run_id), make_logger(cfg, out),
            Checkpoints(out / "checkpoint.pt", cfg.resume, config=training_config(cfg)),
            t_start, SimulatedCommunicator(n_learners=1))
@@ -847,6 +867,7 @@ def run_torchrun(cfg, out: Path, t_start: float) -> None:
             f"torchrun started WORLD_SIZE={world_size} processes but split={split} has "
             f"{len(split)} learners (one process per learner); run torchrun with "
             f"--nproc_per_node {len(split)} (times the nodes), or change split.")
+    interrupt_on_signals()
     try:
         comm = build(cfg.comm, rank=rank, world_size=world_size)  # init_method env://
         comm.check_same_config(OmegaConf.to_yaml(cfg, resolve=True))
@@ -858,12 +879,14 @@ def run_torchrun(cfg, out: Path, t_start: float) -> None:
         comm.close()
     except Exception as e:
         # Exit at once, without tearing down a process group with a dead peer (can hang).
-        if not isinstance(e, PeerFailureError | ConfigMismatchError):
+        if not isinstance(e, PeerFailureError | ConfigMismatchError | Interrupted):
             traceback.print_exc()
-        print(f"error: learner {rank}: {type(e).__name__}: {e}\n{resume_hint(out)}",
-              file=sys.stderr, flush=True)
+        what = (f"interrupted by {e}" if isinstance(e, Interrupted)
+                else f"{type(e).__name__}: {e}")
+        print(f"error: learner {rank}: {what}\n{resume_hint(out)}", file=sys.stderr,
+              flush=True)
         sys.stdout.flush()
-        os._exit(1)
+        os._exit(128 + e.signum if isinstance(e, Interrupted) else 1)
     if rank == 0:
         finish(cfg, out, p, merge_learner_rows(out, world_size, run_id),
                make_logger(cfg, out),

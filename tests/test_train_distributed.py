@@ -161,3 +161,21 @@ def test_a_dead_learner_fails_a_torchrun_run(tmp_path):
     assert not (tmp_path / "results.json").exists()
     for r in (0, 1):
         assert (tmp_path / f"checkpoint_rank{r}.pt").exists()
+
+
+def test_sigterm_stops_a_torchrun_run_and_resume_finishes_it(tmp_path, simulated):
+    """A learner that receives SIGTERM stops at once with a message and the resume
+    command; the others fail fast; resuming under torchrun gives the uninterrupted run."""
+    t0 = time.monotonic()
+    stopped = run_train(tmp_path, "comm=distributed", launcher=torchrun(2),
+                        env={"DICRL_CRASH_AFTER": "D-ICRL@rank1:1",
+                             "DICRL_CRASH_SIGNAL": "TERM"})
+    assert stopped.returncode != 0
+    assert time.monotonic() - t0 < 60
+    assert "error: learner 1: interrupted by SIGTERM" in stopped.stderr
+    assert "error: learner 0: PeerFailureError" in stopped.stderr
+    assert f"resume=true hydra.run.dir={tmp_path}" in stopped.stderr
+    assert not (tmp_path / "results.json").exists()
+    resumed = run_train(tmp_path, "comm=distributed", "resume=true", launcher=torchrun(2))
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert_same_results(tmp_path, simulated)
