@@ -20,6 +20,7 @@ from dicrl_torch.algos.dicrl import DICRL
 from dicrl_torch.comm import (
     ALLOWED_FIELDS,
     CompleteSchedule,
+    MessageRecord,
     RingSchedule,
     SimulatedCommunicator,
     TimeVaryingSchedule,
@@ -96,7 +97,9 @@ def _trainer_body(rank, world_size, init_method, outer_iterations):
         return {"cost_weights": st.cost_weights[0], "eta_bar": st.eta_bar[0],
                 "tracker": st.tracker[0], "eta": st.eta[:, 0],
                 "inner_processes": [h["inner_processes"] for h in t.history],
-                "messages": comm.messages, "dims": (t.fc.dim, t.fr.dim + 1)}
+                # plain tuples: results come back through torch.load(weights_only=True)
+                "messages": [(m.field, m.shape, m.sender) for m in comm.messages],
+                "dims": (t.fc.dim, t.fr.dim + 1)}
 
 
 def _dies_body(rank, world_size, init_method):
@@ -190,16 +193,16 @@ def test_privacy_audit_on_every_rank(trainer_runs):
     d, p = runs[0]["dims"]
     sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,)}
     for rank, r in enumerate(runs):
-        msgs = r["messages"]
+        msgs = r["messages"]  # (field, shape, sender)
         # Algorithm 2 (the default inner method) sends no inner gradient tracker.
-        assert {m.field for m in msgs} == {"eta", "cost_weights", "tracker"}
+        assert {field for field, _, _ in msgs} == {"eta", "cost_weights", "tracker"}
         assert set(sizes) <= set(ALLOWED_FIELDS)
-        for m in msgs:
-            assert m.field in ALLOWED_FIELDS and m.shape == sizes[m.field]
-            assert m.sender == rank
+        for field, shape, sender in msgs:
+            assert field in ALLOWED_FIELDS and tuple(shape) == sizes[field]
+            assert sender == rank
         # the same messages, in the same order, as that learner in the simulated run
         own = [(m.field, m.shape) for m in sim.comm.messages if m.sender == rank]
-        assert [(m.field, m.shape) for m in msgs] == own
+        assert [(field, tuple(shape)) for field, shape, _ in msgs] == own
 
 
 # ---------------------------------------------------------------------- faults
@@ -322,3 +325,15 @@ def test_argument_checks(monkeypatch):
         shard_for_rank(["a", "b"], 2, world_size=2)
     with pytest.raises(ValueError, match="needs world_size"):
         shard_for_rank(["a"], 0)
+
+
+def _object_body(rank, world_size, init_method):
+    return MessageRecord(field="eta", shape=(3,), sender=rank)
+
+
+def test_results_come_back_without_unpickling():
+    """A learner's return value is read with torch.load(weights_only=True): an arbitrary
+    object is refused with a clear message instead of being unpickled."""
+    with pytest.raises(LearnerProcessError) as info:
+        spawn_learners(_object_body, 1, timeout_s=60)
+    assert "not plain data" in info.value.failures[0]

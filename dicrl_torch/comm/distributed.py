@@ -24,7 +24,6 @@ import datetime
 import hashlib
 import multiprocessing.connection
 import os
-import pickle
 import socket
 import sys
 import tempfile
@@ -282,7 +281,12 @@ def free_port() -> int:
 
 def _run_learner(fn: Callable[..., Any], rank: int, world_size: int, init_method: str,
                  args: tuple, out_dir: str, num_threads: int | None) -> None:
-    """Child process body: run ``fn`` and leave its outcome in ``out_dir/RANK.pkl``."""
+    """Child process body: run ``fn`` and leave its outcome in ``out_dir/RANK.pt``.
+
+    The outcome travels as a ``torch.save`` file that the parent reads with
+    ``weights_only=True``: tensors, numbers, strings, None and lists, tuples and dicts of
+    them. Nothing is unpickled, so ``fn`` must return plain data of that kind.
+    """
     if num_threads is not None:
         torch.set_num_threads(num_threads)
     code = 0
@@ -290,15 +294,14 @@ def _run_learner(fn: Callable[..., Any], rank: int, world_size: int, init_method
         payload: tuple = ("ok", fn(rank, world_size, init_method, *args))
     except BaseException as e:  # report everything, including SystemExit
         payload, code = ("error", f"{type(e).__name__}: {e}", traceback.format_exc()), 1
-    path = Path(out_dir) / f"{rank}.pkl"
-    try:
-        data = pickle.dumps(payload)
-    except Exception as e:
-        data = pickle.dumps(("error", f"return value could not be pickled ({e})", ""))
-        code = 1
+    path = Path(out_dir) / f"{rank}.pt"
     # Write then rename, so the parent never reads a half-written file.
     tmp = path.with_suffix(".tmp")
-    tmp.write_bytes(data)
+    try:
+        torch.save(payload, tmp)
+    except Exception as e:
+        torch.save(("error", f"return value could not be saved ({e})", ""), tmp)
+        code = 1
     os.replace(tmp, path)
     sys.stdout.flush()
     sys.stderr.flush()
@@ -393,14 +396,19 @@ def _collect(procs: list, out_dir: Path, stopped: dict[int, str],
     failures: dict[int, str] = {}
     tracebacks: dict[int, str] = {}
     for r, p in enumerate(procs):
-        path = out_dir / f"{r}.pkl"
+        path = out_dir / f"{r}.pt"
         if r in stopped:
             failures[r] = stopped[r]
         elif not path.exists():
             failures[r] = (f"exited with code {p.exitcode} without returning a result "
                            f"(crashed or killed; see its output above)")
         else:
-            payload = pickle.loads(path.read_bytes())
+            try:
+                payload = torch.load(path, weights_only=True)
+            except Exception as e:  # an object that is not plain data: never unpickled
+                failures[r] = (f"returned a value that is not plain data (tensors, numbers, "
+                               f"strings, lists, tuples, dicts): {_first_line(e)}")
+                continue
             if payload[0] == "ok":
                 results[r] = payload[1]
                 continue
