@@ -1,11 +1,13 @@
 """Train D-ICRL (and C-ICRL) on the grid world and report the paper's table.
 
     python experiments/train.py experiment=quick [seed=1] [graph=ring] [features/cost=per_expert]
+    python experiments/train.py experiment=table1      # Table 1: + ME-greedy, MCE-greedy rows
     python experiments/train.py comm=distributed       # one process per learner (spawned here)
     torchrun --standalone --nproc_per_node N_L experiments/train.py comm=distributed
 
 Writes into the Hydra run directory: ``results.json`` (DESIGN §8), TensorBoard runs
-(``tb/learner<v>``, ``tb/c_icrl``, ``tb/network``), learned-constraint maps (PNG) and
+(``tb/learner<v>``, ``tb/c_icrl``, ``tb/network``; with ``baselines=greedy`` also
+``tb/me_greedy``, ``tb/mce_greedy``, curves over greedy steps), learned-constraint maps (PNG) and
 the demonstrations; prints the results table. This is one of the only places that
 read a config: everything below is built here and handed to the library.
 
@@ -57,6 +59,7 @@ from hydra.utils import get_class, get_object, instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dicrl_torch.algos.dicrl import DICRL, NonFiniteError
+from dicrl_torch.algos.greedy import GreedyConstraintInference
 from dicrl_torch.comm import SimulatedCommunicator
 from dicrl_torch.comm.distributed import (
     ConfigMismatchError,
@@ -142,32 +145,41 @@ VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
      "'paper' or 'gradient_tracking'", "paper"),
     ("comm.timeout_s", float, _in_open(0.0, math.inf),
      "a positive number of seconds", "60"),
+    ("baselines.epsilon", float | None, _ge(0.0),
+     "null (BIC: ln(m)/(2m)) or a number >= 0 (nats per trajectory)", "0.023"),
+    ("baselines.max_constraints", int | None, _ge(0),
+     "null (no limit) or an int >= 0", "20"),
 ]
+
+# The baselines' table rows (names as in the paper) and the greedy's demonstrator model.
+BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
 
 # Keys of nodes without a _target_ (those with one are checked against its signature).
 KNOWN_KEYS = {
     "": {"env", "features", "solver", "algo", "graph", "comm", "logger", "name", "seed",
          "n_demonstrations", "split", "eval_episodes", "expert_temperature",
-         "checkpoint_every", "resume"},
+         "checkpoint_every", "resume", "baselines"},
     "env": {"layout", "model", "true_reward_weights"},
     "features": {"reward", "cost"},
     "graph": {"inner", "outer"},
     "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",
              "lsca_curvature", "prune_accrued", "init_cost_weights", "init_reward_weights",
              "init_multiplier", "threshold", "prune_min_gain", "run_c_icrl"},
+    "baselines": {"run", "epsilon", "max_constraints"},
 }
 _HYDRA_KEYS = {"_target_", "_partial_", "_args_", "_recursive_", "_convert_"}
 
 
 def _type_ok(value, kind) -> bool:
+    if value is None:
+        return kind == float | None or kind == int | None
+    kind = {float | None: float, int | None: int}.get(kind, kind)
     if kind is bool or kind is str:
         return isinstance(value, kind)
     if isinstance(value, bool):  # bool is an int to Python, never a number here
         return False
     if kind is int:
         return isinstance(value, int)
-    if value is None:
-        return kind == float | None
     return isinstance(value, int | float) and math.isfinite(value)
 
 
@@ -228,6 +240,12 @@ def check_config(cfg: DictConfig) -> None:
         problems.append(f"split={_plain(split)} sums to {sum(split)}, not n_demonstrations="
                         f"{cfg.n_demonstrations}; make them agree (e.g. n_demonstrations="
                         f"{sum(split)}).")
+    run = OmegaConf.select(cfg, "baselines.run", default=None)
+    if not (OmegaConf.is_list(run) and all(isinstance(x, str) and x in BASELINES for x in run)
+            and len(set(run)) == len(run)):
+        problems.append(f"baselines.run={_plain(run)} is invalid: it must be a list of "
+                        f"distinct names among {list(BASELINES)} (the rows to add; [] for "
+                        f"none); set e.g. baselines=greedy or baselines=none.")
     if problems:
         raise ConfigError(f"{len(problems)} problem(s) in the configuration, nothing was "
                           f"computed:\n" + "\n".join(f"  - {p}" for p in problems))
@@ -312,6 +330,7 @@ def announce(cfg, p: Problem, out: Path) -> None:
     """Printed (and the demonstrations saved) once per run, by the main process."""
     split = list(cfg.split)
     save_demonstrations(out / "demos.npz", p.demos)
+    make_baselines(cfg, p, progress=False)  # a baseline that cannot run fails now, not later
     print(f"{p.layout.n_experts} experts, {len(split)} learners holding {split} demonstrations;"
           f" {p.model.n_pairs:,} state-action pairs")
 
@@ -400,6 +419,66 @@ def evaluate_learners(name: str, trainer: DICRL, p: Problem, cfg, logger, run_of
         logger.scalar(run_of(v), "eval/CVR", row["CVR"], a.outer_iterations)
         rows.append(row)
     return rows
+
+
+def make_baselines(cfg, p: Problem, progress: bool = True) -> dict[str, GreedyConstraintInference]:
+    """The requested greedy baselines (``baselines.run``), by row name, built (and so
+    checked: e.g. a cost basis that is not non-negative) but not run.
+
+    As in the paper, they are given the TRUE reward and all demonstrations pooled; the
+    candidate constraints are the configured cost basis, the model the problem's solver.
+    """
+    b = cfg.baselines
+    reward = p.reward_basis().weighted(p.ctx["w_true"])
+    eps = None if b.epsilon is None else float(b.epsilon)
+    return {name: GreedyConstraintInference(
+                solver=p.solver, reward=reward, cost_basis=p.cost_basis,
+                demonstrations=p.demos, model=BASELINES[name], epsilon=eps,
+                max_constraints=b.max_constraints, progress=progress)
+            for name in b.run}
+
+
+def run_baselines(cfg, p: Problem, logger, out: Path) -> tuple[dict, dict]:
+    """Run the requested greedy baselines: their table rows and per-step histories.
+
+    Every greedy step (a constraint added) logs ``eval/FPR``, ``eval/FNR`` and
+    ``greedy/log_likelihood`` at step ``k`` = constraints added so far, under the run
+    ``me_greedy`` / ``mce_greedy``; the final policy is evaluated as the other rows.
+    """
+    import matplotlib.image
+
+    methods, histories = {}, {}
+    for name, greedy in make_baselines(cfg, p).items():
+        res = greedy.run()
+        run = name.lower().replace("-", "_")
+        mask = torch.zeros_like(res.constraint_mask)
+        history = []
+        for k, ll in enumerate(res.log_likelihood):
+            if k:
+                mask[res.added[k - 1]] = True
+            fpr, fnr = (false_positive_rate(mask, p.ctx["true"]),
+                        false_negative_rate(mask, p.ctx["true"]))
+            history.append({"step": k, "added": res.added_names[k - 1] if k else None,
+                            "log_likelihood": ll,
+                            "improvement": res.improvement[k - 1] if k else None,
+                            "FPR": fpr, "FNR": fnr})
+            logger.scalar(run, "eval/FPR", fpr, k)
+            logger.scalar(run, "eval/FNR", fnr, k)
+            logger.scalar(run, "greedy/log_likelihood", ll, k)
+        k = len(res.added)
+        row = evaluate(res.solution.policy_at, p.ctx)
+        row.update(FPR=false_positive_rate(res.constraint_mask, p.ctx["true"]),
+                   FNR=false_negative_rate(res.constraint_mask, p.ctx["true"]),
+                   RFD=None, SR=None, n_learned=k, stop_reason=res.stop_reason)
+        img = constraint_map(p.layout, p.cost_basis, res.constraint_mask.double(), 0.5,
+                             f"{name}: learned cell constraints (x)")
+        logger.image(run, "eval/constraint_map", img, k)
+        matplotlib.image.imsave(out / f"constraints_{name}.png", img)
+        logger.scalar(run, "eval/CR", row["CR_mean"], k)
+        logger.scalar(run, "eval/CVR", row["CVR"], k)
+        methods[name] = {"D": "×", "NATR": "×", "learners": [row]}
+        histories[name] = history
+    return methods, histories
 
 
 def print_table(methods: dict) -> None:
@@ -635,7 +714,8 @@ def write_json(path: Path, obj) -> None:
 
 def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
            t_start: float, c_icrl_comm, stop: StopOnSignal | None = None) -> None:
-    """C-ICRL and the expert rows (in this process), then ``results.json`` and the table.
+    """C-ICRL, the baselines (``baselines.run``) and the expert rows (in this process),
+    then ``results.json`` and the table.
 
     ``d_icrl``: the D-ICRL ``learners`` rows, ``history`` and final ``disagreement``.
     """
@@ -656,6 +736,9 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
         methods["C-ICRL"] = {"D": "×", "NATR": "✓", "learners": evaluate_learners(
             "C-ICRL", c, p, cfg, logger, lambda v: "c_icrl", out)}
         histories["C-ICRL"] = c.history
+    baseline_rows, baseline_histories = run_baselines(cfg, p, logger, out)
+    methods.update(baseline_rows)  # before the experts: the paper's row order
+    histories.update(baseline_histories)
     for name, sol in (("Experts (ground truth)", p.experts), ("Experts (nominal)", p.nominal)):
         row = evaluate(sol.policy_at, p.ctx)
         row.update(FPR=None, FNR=None, RFD=0.0, SR=None)

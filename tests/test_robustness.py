@@ -95,7 +95,8 @@ def reference(tmp_path_factory) -> Path:
 @pytest.mark.parametrize("group,option", [
     ("env", "gridworld"), ("env", "gridworld_open"), ("features/cost", "per_expert"),
     ("features/cost", "random_mlp"), ("graph", "ring"), ("comm", "distributed"),
-    ("logger", "none")])
+    ("logger", "none"), ("baselines", "greedy"), ("experiment", "table1"),
+    ("experiment", "table1_small")])
 def test_every_shipped_config_passes_the_checks(group, option):
     entry.check_config(compose_train(f"{group}={option}"))
 
@@ -125,6 +126,9 @@ def test_every_shipped_config_passes_the_checks(group, option):
     ("checkpoint_every=0", "checkpoint_every", "int >= 1"),
     ("seed=-1", "seed", "int >= 0"),
     ("expert_temperature=-1", "expert_temperature", ">= 0"),
+    ("baselines.epsilon=-1", "baselines.epsilon", ">= 0"),
+    ("baselines.max_constraints=1.5", "baselines.max_constraints", "int >= 0"),
+    ("baselines.max_constraints=-2", "baselines.max_constraints", "int >= 0"),
 ])
 def test_out_of_range_values_are_refused_naming_key_and_fix(override, key, must):
     with pytest.raises(entry.ConfigError) as info:

@@ -1,0 +1,95 @@
+"""Table 1 (paper §6.1): the experiment files, the baselines config group and a tiny
+end-to-end run with the ME-greedy / MCE-greedy rows in the paper's row order."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+# tests/test_configs.py's TINY: 1 expert, T = 8, 2 learners, 3 outer iterations
+TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
+        "algo.outer_iterations=3", "algo.inner_steps=2", "eval_episodes=10",
+        "n_demonstrations=10", "split=[4,6]", "logger=none"]
+PAPER_ORDER = ["D-ICRL", "C-ICRL", "ME-greedy", "MCE-greedy", "Experts (ground truth)",
+               "Experts (nominal)"]
+
+
+def compose_train(*overrides: str):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name="train", overrides=list(overrides))
+
+
+def load_entry_point():
+    spec = importlib.util.spec_from_file_location("dicrl_train_entry_table1",
+                                                  ROOT / "experiments" / "train.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("experiment,n_experts", [("table1", 3), ("table1_small", 2)])
+def test_table1_experiments_compose(experiment, n_experts):
+    cfg = compose_train(f"experiment={experiment}")
+    assert cfg.name == experiment
+    assert cfg.env.layout.n_experts == n_experts
+    assert list(cfg.split) == [10, 20, 30, 40] and cfg.n_demonstrations == 100
+    assert list(cfg.baselines.run) == ["ME-greedy", "MCE-greedy"]
+    assert cfg.baselines.epsilon is None and cfg.baselines.max_constraints is None
+    assert cfg.solver.compile is True
+    quick = compose_train("experiment=quick")
+    assert cfg.algo == quick.algo  # the algorithm settings of experiment=quick
+    # the command line still wins over the experiment's baselines
+    assert list(compose_train(f"experiment={experiment}", "baselines=none").baselines.run) == []
+
+
+def test_make_run_has_no_baselines():
+    assert list(compose_train().baselines.run) == []
+    assert list(compose_train("experiment=quick").baselines.run) == []
+
+
+@pytest.mark.parametrize("override", ["baselines.run=[M-greedy]",
+                                      "baselines.run=[ME-greedy,ME-greedy]",
+                                      "baselines.run=ME-greedy", "+baselines.eps=0.1"])
+def test_bad_baselines_are_refused(override):
+    entry = load_entry_point()
+    with pytest.raises(entry.ConfigError, match="baselines"):
+        entry.check_config(compose_train(override))
+
+
+def test_tiny_run_with_baselines_has_the_paper_rows(tmp_path):
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={tmp_path}",
+         *TINY, "baselines=greedy", "logger=tensorboard"],
+        capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert list(res["methods"]) == PAPER_ORDER
+    for name in ("ME-greedy", "MCE-greedy"):
+        (row,) = res["methods"][name]["learners"]
+        assert 0 <= row["FPR"] <= 1 and 0 <= row["FNR"] <= 1 and 0 <= row["CVR"] <= 1
+        assert row["RFD"] is None and row["SR"] is None
+        hist = res["history"][name]
+        assert [h["step"] for h in hist] == list(range(row["n_learned"] + 1))
+        assert hist[0]["added"] is None and all(isinstance(h["added"], str) for h in hist[1:])
+        lls = [h["log_likelihood"] for h in hist]
+        assert lls == sorted(lls)  # every added constraint raises the likelihood
+        assert (hist[-1]["FPR"], hist[-1]["FNR"]) == (row["FPR"], row["FNR"])
+        assert (tmp_path / f"constraints_{name}.png").exists()
+        assert (tmp_path / "tb" / name.lower().replace("-", "_")).is_dir()
+    # the printed table: the paper's rows in its order, with the D / NATR marks
+    lines = out.stdout.splitlines()
+    rows = [next(ln for ln in lines if ln.startswith(name + " ") or ln.startswith(name + "  "))
+            for name in ("C-ICRL", "ME-greedy", "MCE-greedy", "Experts (ground truth)")]
+    assert [lines.index(r) for r in rows] == sorted(lines.index(r) for r in rows)
+    for r in rows[1:3]:
+        assert r.split()[1:3] == ["×", "×"] and r.rstrip().endswith("N/A")
+    assert rows[0].split()[1:3] == ["×", "✓"]
