@@ -24,17 +24,22 @@ and the fix (the house style of :mod:`dicrl_torch.demos.storage`).
 from __future__ import annotations
 
 import os
-import uuid
-import zipfile
-import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from dicrl_torch.demos.npz import (
+    atomic_savez,
+    check_expected,
+    check_version,
+    open_archive,
+    read_field,
+    read_scalar,
+    shard_indices,
+)
 from dicrl_torch.envs.drones import (
     AGENTS,
     DOORS,
@@ -79,9 +84,6 @@ uses their mirror image ``x -> ROOM_SIZE - x``. The path ends above the last one
 _HOLD_WAYPOINT = 1  # index in the waypoint list (0 is the start): the first via-point
 _MAX_WAIT_S = 12.0
 _WAIT_STEP_S = 0.25
-
-# What np.load / zipfile / zlib raise on a damaged archive or member.
-_READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, KeyError)
 
 
 # ====================================================================== data + schema
@@ -291,57 +293,11 @@ def save_drone_demonstrations(
             f"save_drone_demonstrations expects a DroneDemonstrations, got "
             f"{type(demos).__name__}; build one with make_drone_demonstrations(...)."
         )
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     fields = {"states": demos.states, "actions": demos.actions, "lengths": demos.lengths,
               "dt": np.float64(demos.dt), "format_version": np.int64(FORMAT_VERSION)}
     if demos.seeds is not None:
         fields["seeds"] = demos.seeds
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            # A file object, not a name: np.savez would otherwise append ".npz".
-            np.savez_compressed(f, **fields)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _read_field(archive: Any, field: str, source: str) -> np.ndarray:
-    try:
-        return archive[field]
-    except ValueError as e:
-        if "allow_pickle" in str(e):
-            raise ValueError(
-                f"{source}: field '{field}' is an object (pickled) array, which is never "
-                f"loaded for safety; store it as a numeric array and re-save with "
-                f"save_drone_demonstrations."
-            ) from e
-        raise ValueError(
-            f"{source}: field '{field}' cannot be read ({e}); the file is corrupt. "
-            f"Regenerate it with save_drone_demonstrations."
-        ) from e
-    except _READ_ERRORS as e:
-        raise ValueError(
-            f"{source}: field '{field}' cannot be read ({type(e).__name__}: {e}); the file "
-            f"is truncated or corrupt. Regenerate it with save_drone_demonstrations."
-        ) from e
-
-
-def _read_scalar(archive: Any, field: str, kind: str, source: str) -> int | float:
-    a = _read_field(archive, field, source)
-    want = np.integer if kind == "int" else np.floating
-    if a.ndim != 0 or not np.issubdtype(a.dtype, want):
-        raise ValueError(
-            f"{source}: field '{field}' must be a {kind} scalar, got dtype {a.dtype} shape "
-            f"{a.shape}. Re-save the file with save_drone_demonstrations."
-        )
-    return int(a) if kind == "int" else float(a)
+    return atomic_savez(path, fields)
 
 
 def load_drone_demonstrations(
@@ -364,60 +320,18 @@ def load_drone_demonstrations(
     """
     path = Path(path)
     source = f"drone demonstrations file '{path}'"
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"No {source}: it does not exist or is not a file. Generate the "
-            f"demonstrations with make_drone_demonstrations first, or fix the path."
-        )
-    with open(path, "rb") as fh:  # closed on every path, unlike np.load's own handle
-        try:
-            archive = np.load(fh, allow_pickle=False)
-        except _READ_ERRORS as e:
-            why = "not an array file" if "pickle" in str(e) else f"{type(e).__name__}: {e}"
-            raise ValueError(
-                f"{source} cannot be opened as an .npz archive ({why}); it is truncated, "
-                f"corrupt or not an .npz. Regenerate it with save_drone_demonstrations."
-            ) from e
-        if not isinstance(archive, np.lib.npyio.NpzFile):
-            raise ValueError(
-                f"{source} holds a single .npy array, not an .npz archive with fields "
-                f"{list(FIELDS)}; re-save it with save_drone_demonstrations."
-            )
-        with archive:
-            names = set(archive.files)
-            missing = [f for f in FIELDS if f not in names]
-            if missing:
-                raise ValueError(
-                    f"{source}: missing field(s) {missing}; a drone demonstrations file "
-                    f"needs {list(FIELDS)}. Re-save it with save_drone_demonstrations."
-                )
-            unknown = sorted(names - set(FIELDS) - set(OPTIONAL_FIELDS))
-            if unknown:
-                raise ValueError(
-                    f"{source}: unknown field(s) {unknown}; a drone demonstrations file "
-                    f"holds only {list(FIELDS + OPTIONAL_FIELDS)}. Re-save it with "
-                    f"save_drone_demonstrations."
-                )
-            version = _read_scalar(archive, "format_version", "int", source)
-            if version != FORMAT_VERSION:
-                raise ValueError(
-                    f"{source}: field 'format_version' is {version}, but this code reads "
-                    f"only version {FORMAT_VERSION}; regenerate the file with this version "
-                    f"of dicrl_torch."
-                )
-            file_dt = _read_scalar(archive, "dt", "float", source)
-            arrays = {f: _read_field(archive, f, source) for f in ARRAY_FIELDS}
-            seeds = _read_field(archive, "seeds", source) if "seeds" in names else None
+    fix = "save_drone_demonstrations"
+    with open_archive(path, source=source, required=FIELDS, optional=OPTIONAL_FIELDS, fix=fix,
+                      generate="Generate the demonstrations with make_drone_demonstrations "
+                               "first") as archive:
+        check_version(archive, FORMAT_VERSION, source, fix)
+        file_dt = read_scalar(archive, "dt", source, fix, kind=float)
+        arrays = {f: read_field(archive, f, source, fix) for f in ARRAY_FIELDS}
+        seeds = read_field(archive, "seeds", source, fix) if "seeds" in archive.files else None
     validate_drone_arrays(arrays["states"], arrays["actions"], arrays["lengths"], file_dt,
                           seeds, source=source)
-    found = {"n_pairs": arrays["states"].shape[0], "dt": file_dt}
-    for name, want in (("n_pairs", n_pairs), ("dt", dt)):
-        if want is not None and found[name] != want:
-            raise ValueError(
-                f"{source}: field '{name}' is {found[name]} in the file but {want} was "
-                f"expected; regenerate the demonstrations for this configuration or point "
-                f"to the matching file."
-            )
+    check_expected(source, {"n_pairs": arrays["states"].shape[0], "dt": file_dt},
+                   {"n_pairs": n_pairs, "dt": dt})
     return DroneDemonstrations(dt=file_dt, seeds=seeds, **arrays)
 
 
@@ -439,22 +353,7 @@ def partition_drone_demonstrations(
     """
     if not isinstance(demos, DroneDemonstrations):
         raise TypeError(f"demos must be a DroneDemonstrations, got {type(demos).__name__}.")
-    if rng is not None and not isinstance(rng, np.random.Generator):
-        raise TypeError(
-            f"rng must be a numpy.random.Generator or None, got {type(rng).__name__}; "
-            f"pass np.random.default_rng(seed)."
-        )
-    sizes = tuple(sizes)
-    if not sizes or any(not _is_int(s) or s <= 0 for s in sizes):
-        raise ValueError(f"Shard sizes must be positive ints, one per learner, got {list(sizes)}.")
-    if sum(sizes) != demos.n_pairs:
-        raise ValueError(
-            f"Shard sizes {list(sizes)} sum to {sum(sizes)}, but there are {demos.n_pairs} "
-            f"pairs; make the sizes sum to {demos.n_pairs}."
-        )
-    order = rng.permutation(demos.n_pairs) if rng is not None else np.arange(demos.n_pairs)
-    bounds = np.cumsum((0,) + sizes)
-    return [demos.subset(order[lo:hi]) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
+    return [demos.subset(idx) for idx in shard_indices(demos.n_pairs, sizes, rng, "pairs")]
 
 
 # ============================================================================ planner

@@ -11,22 +11,25 @@ file, the field and the fix.
 from __future__ import annotations
 
 import os
-import uuid
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from dicrl_torch.demos.npz import (
+    atomic_savez,
+    check_expected,
+    check_version,
+    open_archive,
+    read_field,
+    read_scalar,
+)
+
 FORMAT_VERSION = 1
 ARRAY_FIELDS: tuple[str, ...] = ("states", "actions")
 SCALAR_FIELDS: tuple[str, ...] = ("n_cells", "n_actions", "format_version")
 FIELDS: tuple[str, ...] = ARRAY_FIELDS + SCALAR_FIELDS
-
-# What np.load / zipfile / zlib raise on a damaged archive or member.
-_READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, KeyError)
 
 
 def _is_int(x: object) -> bool:
@@ -204,12 +207,9 @@ class Demonstrations:
 
 
 def save_demonstrations(path: str | os.PathLike[str], demos: Demonstrations) -> Path:
-    """Write ``demos`` to ``path`` as a compressed ``.npz``, atomically.
-
-    The archive is written to a temporary file next to ``path`` and moved into place
-    with ``os.replace``, so a crash never leaves a half-written file under ``path``.
-    ``path`` is used as given (no ``.npz`` suffix is appended); parent directories are
-    created.
+    """Write ``demos`` to ``path`` as a compressed ``.npz``, atomically (see
+    :func:`dicrl_torch.demos.npz.atomic_savez`: no suffix is appended, parent
+    directories are created).
 
     Returns:
         The path written.
@@ -219,104 +219,10 @@ def save_demonstrations(path: str | os.PathLike[str], demos: Demonstrations) -> 
             f"save_demonstrations expects a Demonstrations, got {type(demos).__name__}; "
             f"wrap the arrays with Demonstrations(states=..., actions=..., ...)."
         )
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    # os.open with mode 0o666 lets the umask decide the final permissions, as for a
-    # plain open(); O_EXCL guards against clobbering anything.
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            # A file object, not a name: np.savez would otherwise append ".npz".
-            np.savez_compressed(
-                f,
-                states=demos.states,
-                actions=demos.actions,
-                n_cells=np.int64(demos.n_cells),
-                n_actions=np.int64(demos.n_actions),
-                format_version=np.int64(FORMAT_VERSION),
-            )
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _read_scalar(archive: np.lib.npyio.NpzFile, field: str, source: str) -> int:
-    a = _read_field(archive, field, source)
-    if a.ndim != 0 or not np.issubdtype(a.dtype, np.integer):
-        raise ValueError(
-            f"{source}: field '{field}' must be an integer scalar, got dtype {a.dtype} "
-            f"shape {a.shape}. Re-save the file with save_demonstrations."
-        )
-    return int(a)
-
-
-def _read_field(archive: np.lib.npyio.NpzFile, field: str, source: str) -> np.ndarray:
-    try:
-        return archive[field]
-    except ValueError as e:
-        if "allow_pickle" in str(e):
-            raise ValueError(
-                f"{source}: field '{field}' is an object (pickled) array, which is never "
-                f"loaded for safety; store it as an integer array and re-save with "
-                f"save_demonstrations."
-            ) from e
-        raise ValueError(
-            f"{source}: field '{field}' cannot be read ({e}); the file is corrupt. "
-            f"Regenerate it with save_demonstrations."
-        ) from e
-    except _READ_ERRORS as e:
-        raise ValueError(
-            f"{source}: field '{field}' cannot be read ({type(e).__name__}: {e}); the file "
-            f"is truncated or corrupt. Regenerate it with save_demonstrations."
-        ) from e
-
-
-def _read_archive(
-    archive: np.lib.npyio.NpzFile, source: str
-) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Check the field names and version, then read ``states, actions, n_cells,
-    n_actions`` (not yet validated against each other)."""
-    names = set(archive.files)
-    missing = [f for f in FIELDS if f not in names]
-    if missing:
-        raise ValueError(
-            f"{source}: missing field(s) {missing}; a demonstrations file needs "
-            f"{list(FIELDS)}. Re-save it with save_demonstrations."
-        )
-    unknown = sorted(names - set(FIELDS))
-    if unknown:
-        raise ValueError(
-            f"{source}: unknown field(s) {unknown}; a demonstrations file holds only "
-            f"{list(FIELDS)}. Re-save it with save_demonstrations."
-        )
-    # The version first: a newer layout could make every other check misleading.
-    version = _read_scalar(archive, "format_version", source)
-    if version != FORMAT_VERSION:
-        raise ValueError(
-            f"{source}: field 'format_version' is {version}, but this code reads only "
-            f"version {FORMAT_VERSION}; regenerate the file with this version of "
-            f"dicrl_torch."
-        )
-    n_cells = _read_scalar(archive, "n_cells", source)
-    n_actions = _read_scalar(archive, "n_actions", source)
-    states = _read_field(archive, "states", source)
-    actions = _read_field(archive, "actions", source)
-    return states, actions, n_cells, n_actions
-
-
-def _check_expected(source: str, found: dict[str, int], expected: dict[str, int | None]) -> None:
-    for name, want in expected.items():
-        if want is not None and found[name] != want:
-            raise ValueError(
-                f"{source}: field '{name}' is {found[name]} in the file but {want} was "
-                f"expected; the file was made for a different configuration. Regenerate "
-                f"the demonstrations for this configuration or point to the matching file."
-            )
+    return atomic_savez(path, {
+        "states": demos.states, "actions": demos.actions,
+        "n_cells": np.int64(demos.n_cells), "n_actions": np.int64(demos.n_actions),
+        "format_version": np.int64(FORMAT_VERSION)})
 
 
 def load_demonstrations(
@@ -345,38 +251,21 @@ def load_demonstrations(
     """
     path = Path(path)
     source = f"demonstrations file '{path}'"
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"No {source}: it does not exist or is not a file. Generate the "
-            f"demonstrations first, or fix the path."
-        )
-    # Open the file ourselves so it is closed on every path: np.load leaks its handle
-    # when the archive turns out unreadable.
-    with open(path, "rb") as fh:
-        try:
-            archive = np.load(fh, allow_pickle=False)
-        except _READ_ERRORS as e:
-            # numpy's own text for a non-array file suggests unpickling it; do not echo it.
-            why = ("not an array file" if "pickle" in str(e)
-                   else f"{type(e).__name__}: {e}")
-            raise ValueError(
-                f"{source} cannot be opened as an .npz archive ({why}); it is truncated, "
-                f"corrupt or not an .npz. Regenerate it with save_demonstrations."
-            ) from e
-        if not isinstance(archive, np.lib.npyio.NpzFile):
-            raise ValueError(
-                f"{source} holds a single .npy array, not an .npz archive with fields "
-                f"{list(FIELDS)}; re-save it with save_demonstrations."
-            )
-        with archive:
-            states, actions, file_cells, file_actions = _read_archive(archive, source)
+    fix = "save_demonstrations"
+    with open_archive(path, source=source, required=FIELDS, fix=fix,
+                      generate="Generate the demonstrations first") as archive:
+        check_version(archive, FORMAT_VERSION, source, fix)
+        file_cells = read_scalar(archive, "n_cells", source, fix)
+        file_actions = read_scalar(archive, "n_actions", source, fix)
+        states = read_field(archive, "states", source, fix)
+        actions = read_field(archive, "actions", source, fix)
     # Validate here, not only in Demonstrations, so the messages name the file.
     validate_arrays(states, actions, file_cells, file_actions, source=source)
     found = {
         "n_cells": file_cells, "n_actions": file_actions,
         "n_experts": states.shape[2], "horizon": actions.shape[1],
     }
-    _check_expected(
+    check_expected(
         source, found,
         {"n_cells": n_cells, "n_actions": n_actions, "n_experts": n_experts, "horizon": horizon},
     )

@@ -1,0 +1,168 @@
+"""Safe ``.npz`` archives for demonstrations (grid and drone alike).
+
+Writes are atomic (a temporary file moved into place). Reads never unpickle
+(``allow_pickle=False``), check the field names against a schema and turn every
+failure into a ``ValueError`` that names the file, the field and the fix; ``fix`` is the
+function that writes a good file (e.g. ``"save_demonstrations"``).
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+import zipfile
+import zlib
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+# What np.load / zipfile / zlib raise on a damaged archive or member.
+READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, KeyError)
+
+
+def atomic_savez(path: str | os.PathLike[str], fields: Mapping[str, np.ndarray]) -> Path:
+    """Write ``fields`` to ``path`` as a compressed ``.npz``, atomically.
+
+    The archive goes to a temporary file next to ``path`` and is moved into place with
+    ``os.replace``, so a crash never leaves a half-written file under ``path``. ``path``
+    is used as given (no ``.npz`` suffix is appended); parent directories are created.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    # os.open with mode 0o666 lets the umask decide the final permissions, as for a
+    # plain open(); O_EXCL guards against clobbering anything.
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            # A file object, not a name: np.savez would otherwise append ".npz".
+            np.savez_compressed(f, **fields)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+@contextmanager
+def open_archive(path: Path, *, source: str, required: Sequence[str],
+                 optional: Sequence[str] = (), fix: str, generate: str
+                 ) -> Iterator[np.lib.npyio.NpzFile]:
+    """Open ``path`` as an ``.npz`` holding ``required`` (and maybe ``optional``) fields.
+
+    Args:
+        path: the file.
+        source: how messages name it, e.g. ``"demonstrations file 'x.npz'"``.
+        required, optional: the schema's field names.
+        fix: the function that writes a good file.
+        generate: what to do when the file is missing.
+
+    Raises:
+        FileNotFoundError: ``path`` is not a file.
+        ValueError: not an ``.npz`` archive, or missing / unknown fields.
+    """
+    if not path.is_file():
+        raise FileNotFoundError(f"No {source}: it does not exist or is not a file. "
+                                f"{generate}, or fix the path.")
+    # Open the file ourselves so it is closed on every path: np.load leaks its handle
+    # when the archive turns out unreadable.
+    with open(path, "rb") as fh:
+        try:
+            archive = np.load(fh, allow_pickle=False)
+        except READ_ERRORS as e:
+            # numpy's own text for a non-array file suggests unpickling it; do not echo it.
+            why = "not an array file" if "pickle" in str(e) else f"{type(e).__name__}: {e}"
+            raise ValueError(
+                f"{source} cannot be opened as an .npz archive ({why}); it is truncated, "
+                f"corrupt or not an .npz. Regenerate it with {fix}.") from e
+        if not isinstance(archive, np.lib.npyio.NpzFile):
+            raise ValueError(f"{source} holds a single .npy array, not an .npz archive with "
+                             f"fields {list(required)}; re-save it with {fix}.")
+        with archive:
+            names = set(archive.files)
+            missing = [f for f in required if f not in names]
+            if missing:
+                raise ValueError(f"{source}: missing field(s) {missing}; the file needs "
+                                 f"{list(required)}. Re-save it with {fix}.")
+            unknown = sorted(names - set(required) - set(optional))
+            if unknown:
+                raise ValueError(f"{source}: unknown field(s) {unknown}; the file holds only "
+                                 f"{list(required) + list(optional)}. Re-save it with {fix}.")
+            yield archive
+
+
+def read_field(archive: np.lib.npyio.NpzFile, field: str, source: str, fix: str) -> np.ndarray:
+    """``archive[field]``, refusing object (pickled) arrays and damaged members."""
+    try:
+        return archive[field]
+    except ValueError as e:
+        if "allow_pickle" in str(e):
+            raise ValueError(
+                f"{source}: field '{field}' is an object (pickled) array, which is never "
+                f"loaded for safety; store it as a numeric array and re-save with {fix}."
+            ) from e
+        raise ValueError(f"{source}: field '{field}' cannot be read ({e}); the file is "
+                         f"corrupt. Regenerate it with {fix}.") from e
+    except READ_ERRORS as e:
+        raise ValueError(
+            f"{source}: field '{field}' cannot be read ({type(e).__name__}: {e}); the file "
+            f"is truncated or corrupt. Regenerate it with {fix}.") from e
+
+
+def read_scalar(archive: np.lib.npyio.NpzFile, field: str, source: str, fix: str,
+                kind: type = int) -> int | float:
+    """A 0-d ``int`` (or ``float``) field."""
+    a = read_field(archive, field, source, fix)
+    want = np.integer if kind is int else np.floating
+    if a.ndim != 0 or not np.issubdtype(a.dtype, want):
+        what = "an integer" if kind is int else "a float"
+        raise ValueError(f"{source}: field '{field}' must be {what} scalar, got dtype "
+                         f"{a.dtype} shape {a.shape}. Re-save the file with {fix}.")
+    return kind(a)
+
+
+def check_version(archive: np.lib.npyio.NpzFile, version: int, source: str, fix: str) -> None:
+    """Read ``format_version`` first: a newer layout could make every other check
+    misleading."""
+    found = read_scalar(archive, "format_version", source, fix)
+    if found != version:
+        raise ValueError(f"{source}: field 'format_version' is {found}, but this code reads "
+                         f"only version {version}; regenerate the file with this version of "
+                         f"dicrl_torch.")
+
+
+def check_expected(source: str, found: Mapping[str, object],
+                   expected: Mapping[str, object | None]) -> None:
+    """Each ``expected`` value that is not None must equal ``found``'s."""
+    for name, want in expected.items():
+        if want is not None and found[name] != want:
+            raise ValueError(
+                f"{source}: field '{name}' is {found[name]} in the file but {want} was "
+                f"expected; the file was made for a different configuration. Regenerate "
+                f"the demonstrations for this configuration or point to the matching file.")
+
+
+def shard_indices(m: int, sizes: Sequence[int], rng: np.random.Generator | None,
+                  unit: str) -> list[np.ndarray]:
+    """Indices of consecutive, disjoint shards of ``m`` items (shuffled first when
+    ``rng`` is given); ``unit`` names the items in messages."""
+    if rng is not None and not isinstance(rng, np.random.Generator):
+        raise TypeError(f"rng must be a numpy.random.Generator or None, got "
+                        f"{type(rng).__name__}; pass np.random.default_rng(seed).")
+    sizes = tuple(sizes)
+    if not sizes:
+        raise ValueError("sizes is empty; give one positive shard size per learner.")
+    bad = [s for s in sizes if isinstance(s, bool | np.bool_) or not isinstance(s, int | np.integer)
+           or s <= 0]
+    if bad:
+        raise ValueError(f"Shard sizes must be positive ints, got {list(sizes)} (bad: {bad}).")
+    if sum(sizes) != m:
+        raise ValueError(f"Shard sizes {list(sizes)} sum to {sum(sizes)}, but there are {m} "
+                         f"{unit}; make the sizes sum to {m}.")
+    order = rng.permutation(m) if rng is not None else np.arange(m)
+    bounds = np.cumsum((0,) + sizes)
+    return [order[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
