@@ -54,6 +54,14 @@ import hydra
 import numpy as np
 import torch
 import torch.distributed as dist
+from common import (
+    atomic_write,
+    build,
+    make_logger,
+    print_table,
+    trainer_settings,
+    write_json,
+)
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class, get_object, instantiate
 from omegaconf import DictConfig, OmegaConf
@@ -73,6 +81,15 @@ from dicrl_torch.demos import partition_demonstrations, save_demonstrations
 from dicrl_torch.demos.experts import expert_solution, sample_trajectories
 from dicrl_torch.demos.storage import Demonstrations
 from dicrl_torch.envs.gridworld_env import render_grid
+from dicrl_torch.figures import (
+    constraint_cells,
+    metric_curves,
+    obstacle_cells,
+    save_png,
+    side_by_side,
+    state_visitation,
+    visitation_heatmap,
+)
 from dicrl_torch.metrics import (
     false_negative_rate,
     false_positive_rate,
@@ -82,11 +99,6 @@ from dicrl_torch.metrics import (
 )
 
 RunOf = Callable[[int], str]  # learner id -> TensorBoard run name
-
-
-def build(cfg, **objects):
-    """Instantiate ``cfg`` with built objects as keyword arguments."""
-    return instantiate(cfg, _partial_=True)(**objects)
 
 
 # ---------------------------------------------------------------------- config checks
@@ -108,6 +120,8 @@ VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
     ("seed", int, _ge(0), "an int >= 0 (it seeds the demonstrations and evaluation)", "0"),
     ("n_demonstrations", int, _ge(1), "an int >= 1", "100"),
     ("eval_episodes", int, _ge(1), "an int >= 1 (evaluation episodes per table row)", "200"),
+    ("eval_every", int, _ge(1),
+     "an int >= 1 (outer iterations between the CR/CVR evaluations of the curves)", "5"),
     ("expert_temperature", float, _ge(0.0), "a number >= 0 (0: optimal experts)", "0.0"),
     ("checkpoint_every", int, _ge(1), "an int >= 1 (outer iterations between checkpoints)",
      "1"),
@@ -151,21 +165,37 @@ VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
      "null (no limit) or an int >= 0", "20"),
 ]
 
+# Rules of the drone arena only (env=drones), and the grid world's keys it has not.
+DRONE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
+    ("solver.timesteps", int, _ge(1), "an int >= 1 (SAC env steps per solve)", "2000"),
+    ("solver.warmup_timesteps", int, _ge(0), "an int >= 0 (SAC pre-training steps)",
+     "30000"),
+    ("solver.n_eval_episodes", int, _ge(1), "an int >= 1 (rollouts per estimate)", "10"),
+    ("env.arena.max_steps", int, _ge(1), "an int >= 1 (episode limit in steps)", "300"),
+    ("baselines.penalty", float, _in_open(0.0, math.inf),
+     "a positive number (reward units per step in a constrained cell)", "10.0"),
+    ("baselines.timesteps", int, _ge(1), "an int >= 1 (SAC steps per greedy trial)", "3000"),
+]
+GRID_ONLY = ("env.model.",)
+
 # The baselines' table rows (names as in the paper) and the greedy's demonstrator model.
 BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
+DRONE_BASELINES = ("M(C)E-greedy",)  # the arena is (nearly) deterministic: ME = MCE
 
 # Keys of nodes without a _target_ (those with one are checked against its signature).
 KNOWN_KEYS = {
     "": {"env", "features", "solver", "algo", "graph", "comm", "logger", "name", "seed",
-         "n_demonstrations", "split", "eval_episodes", "expert_temperature",
+         "n_demonstrations", "split", "eval_episodes", "eval_every", "expert_temperature",
          "checkpoint_every", "resume", "baselines"},
-    "env": {"layout", "model", "true_reward_weights"},
+    "env": {"layout", "model", "true_reward_weights", "arena"},
+    # the drones' solver node (the grid's has a _target_, checked against its signature)
+    "solver": {"timesteps", "warmup_timesteps", "n_eval_episodes", "solver"},
     "features": {"reward", "cost"},
     "graph": {"inner", "outer"},
     "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",
              "lsca_curvature", "prune_accrued", "init_cost_weights", "init_reward_weights",
              "init_multiplier", "threshold", "prune_min_gain", "run_c_icrl"},
-    "baselines": {"run", "epsilon", "max_constraints"},
+    "baselines": {"run", "epsilon", "max_constraints", "penalty", "timesteps"},
 }
 _HYDRA_KEYS = {"_target_", "_partial_", "_args_", "_recursive_", "_convert_"}
 
@@ -213,6 +243,15 @@ def _unknown_keys(node, path: str, problems: list[str]) -> None:
         _unknown_keys(node[key], f"{path}.{key}" if path else key, problems)
 
 
+def is_drone_run(cfg) -> bool:
+    """The drone arena (``env=drones``) rather than the grid world."""
+    return OmegaConf.select(cfg, "env.arena", default=None) is not None
+
+
+def is_simulated(cfg) -> bool:
+    return not issubclass(get_class(cfg.comm._target_), DistributedCommunicator)
+
+
 def check_config(cfg: DictConfig) -> None:
     """Refuse unknown keys and out-of-range values before anything is computed.
 
@@ -221,7 +260,11 @@ def check_config(cfg: DictConfig) -> None:
     """
     problems: list[str] = []
     _unknown_keys(cfg, "", problems)
-    for key, kind, ok, must, example in VALUE_RULES:
+    drones = is_drone_run(cfg)
+    rules = VALUE_RULES + DRONE_RULES if drones else VALUE_RULES
+    for key, kind, ok, must, example in rules:
+        if drones and key.startswith(GRID_ONLY):
+            continue
         if OmegaConf.select(cfg, key, default="__missing__") == "__missing__":
             if key != "comm.timeout_s":  # only the distributed backend has a timeout
                 problems.append(f"'{key}' is missing; set it, e.g. {key}={example}.")
@@ -241,11 +284,16 @@ def check_config(cfg: DictConfig) -> None:
                         f"{cfg.n_demonstrations}; make them agree (e.g. n_demonstrations="
                         f"{sum(split)}).")
     run = OmegaConf.select(cfg, "baselines.run", default=None)
-    if not (OmegaConf.is_list(run) and all(isinstance(x, str) and x in BASELINES for x in run)
+    names, example = (list(DRONE_BASELINES), "baselines=greedy_drones") if drones else \
+        (list(BASELINES), "baselines=greedy")
+    if not (OmegaConf.is_list(run) and all(isinstance(x, str) and x in names for x in run)
             and len(set(run)) == len(run)):
         problems.append(f"baselines.run={_plain(run)} is invalid: it must be a list of "
-                        f"distinct names among {list(BASELINES)} (the rows to add; [] for "
-                        f"none); set e.g. baselines=greedy or baselines=none.")
+                        f"distinct names among {names} (the rows to add; [] for "
+                        f"none); set e.g. {example} or baselines=none.")
+    if drones and not is_simulated(cfg):
+        problems.append("comm=distributed is not supported for the drone arena yet (its SAC "
+                        "solvers are not checkpointed across processes); use comm=simulated.")
     if problems:
         raise ConfigError(f"{len(problems)} problem(s) in the configuration, nothing was "
                           f"computed:\n" + "\n".join(f"  - {p}" for p in problems))
@@ -256,8 +304,11 @@ def _plain(value):
 
 
 # What a checkpoint's training state depends on. Left out: how the run is started,
-# logged, evaluated or stopped (resume, logger, eval_episodes, threshold, ...), and
-# algo.outer_iterations, so that a finished run can be resumed to train for longer.
+# logged, evaluated or stopped (resume, logger, eval_episodes, eval_every, threshold, ...),
+# and algo.outer_iterations, so that a finished run can be resumed to train for longer.
+# The history's metrics (FPR/FNR/RFD every outer iteration, CR/CVR every eval_every) are
+# evaluations: each was taken with the settings of the run that computed its iteration,
+# and the same overrides on resume give the uninterrupted run's history exactly.
 CHECKPOINT_KEYS = ("seed", "n_demonstrations", "split", "expert_temperature", "env", "features",
                    "solver", "graph", "algo")
 CHECKPOINT_IGNORED = ("solver.progress", "algo.outer_iterations", "algo.threshold",
@@ -338,24 +389,9 @@ def announce(cfg, p: Problem, out: Path) -> None:
 def make_trainer(cfg, p: Problem, shards: list[Demonstrations], communicator,
                  trajectory_counts: list[int], progress: bool = True) -> DICRL:
     """The trainer of the learners ``communicator.local_ids`` (holding ``shards``)."""
-    a = cfg.algo
-    n_learners = communicator.n_learners
-    graph = {k: build(cfg.graph[k], n_learners=n_learners) for k in ("inner", "outer")}
-    # Consensus averages the learners' steps α m^[v] ∇G^[v] into α (m / N_L) ∇G; one
-    # learner with all m trajectories takes the same step on G with α / N_L.
-    steps = instantiate(a.steps)
-    scale = n_learners / len(cfg.split)
-    steps = type(steps)(alpha_bar=steps.alpha_bar * scale, beta_bar=steps.beta_bar,
-                        beta_power=steps.beta_power)
-    return DICRL(
-        solver=p.solver, reward_basis=p.reward_basis, cost_basis=p.cost_basis, shards=shards,
-        trajectory_counts=trajectory_counts, communicator=communicator,
-        inner_schedule=graph["inner"], outer_schedule=graph["outer"],
-        steps=steps, inner_steps=a.inner_steps,
-        lsca_curvature=a.lsca_curvature, prune_accrued=a.prune_accrued,
-        init_cost_weights=a.init_cost_weights, init_reward_weights=a.init_reward_weights,
-        init_multiplier=a.init_multiplier, inner_method=a.inner_method,
-        inner_step=a.inner_step * scale, progress=progress)
+    return DICRL(solver=p.solver, reward_basis=p.reward_basis, cost_basis=p.cost_basis,
+                 shards=shards, trajectory_counts=trajectory_counts, communicator=communicator,
+                 progress=progress, **trainer_settings(cfg, communicator.n_learners))
 
 
 # ---------------------------------------------------------------------- evaluation
@@ -381,7 +417,7 @@ def learner_row(trainer: DICRL, i: int, ctx, threshold: float,
         trainer.state.cost_weights[i] = cw
         extra["pruned"] = len(pruned)
     learned = learned_constraints(trainer.state.cost_weights[i], threshold)
-    row = evaluate(trainer.policy(i).policy_at, ctx)
+    row = evaluate(trainer.policy(i).soft_bellman.policy_at, ctx)
     row.update(extra)
     row.update(FPR=false_positive_rate(learned, ctx["true"]),
                FNR=false_negative_rate(learned, ctx["true"]),
@@ -391,15 +427,21 @@ def learner_row(trainer: DICRL, i: int, ctx, threshold: float,
     return row
 
 
-def constraint_map(layout, cost_basis, cost_weights, threshold, title):
-    """PNG-ready map of learned cell constraints (cell features named ``cell(x,y)``)."""
-    cells = [layout.cell(tuple(int(c) for c in name[name.index("(") + 1:-1].split(",")))
-             for name, w in zip(cost_basis.names, cost_weights.tolist(), strict=True)
-             if name.endswith(")") and "cell(" in name and w >= threshold]
-    true_cells = [layout.cell(c) for c in layout.obstacles]
+def constraint_names(cost_basis, cost_weights, threshold: float) -> list[str]:
+    """Names of the features that ``cost_weights`` ``[d]`` marks as constraints
+    (``ω_c,j >= threshold``): kept in the table rows, so that the figures of a distributed
+    run, drawn by one process, know every learner's constraints."""
+    return [name for name, w in zip(cost_basis.names, cost_weights.tolist(), strict=True)
+            if w >= threshold]
+
+
+def constraint_map(layout, names: list[str], title: str) -> np.ndarray:
+    """PNG-ready map of the learned cell constraints ``names`` (red crosses) over the
+    true obstacles (bright)."""
     heat = np.zeros(layout.n_cells)
-    heat[true_cells] = 1.0
-    return render_grid(layout, heat=heat, constraint_cells=cells, title=title)
+    heat[obstacle_cells(layout)] = 1.0
+    return render_grid(layout, heat=heat, constraint_cells=constraint_cells(layout, names),
+                       title=title)
 
 
 def evaluate_learners(name: str, trainer: DICRL, p: Problem, cfg, logger, run_of: RunOf,
@@ -411,7 +453,9 @@ def evaluate_learners(name: str, trainer: DICRL, p: Problem, cfg, logger, run_of
     rows = []
     for i, v in enumerate(trainer.local):
         row = learner_row(trainer, i, p.ctx, a.threshold, a.prune_min_gain, progress)
-        img = constraint_map(p.layout, p.cost_basis, trainer.state.cost_weights[i], a.threshold,
+        row["constraints"] = constraint_names(p.cost_basis, trainer.state.cost_weights[i],
+                                              a.threshold)
+        img = constraint_map(p.layout, row["constraints"],
                              f"{name} learner {v + 1}: learned cell constraints (x)")
         logger.image(run_of(v), "eval/constraint_map", img, a.outer_iterations)
         matplotlib.image.imsave(out / f"constraints_{name}_{v + 1}.png", img)
@@ -470,8 +514,8 @@ def run_baselines(cfg, p: Problem, logger, out: Path) -> tuple[dict, dict]:
         row.update(FPR=false_positive_rate(res.constraint_mask, p.ctx["true"]),
                    FNR=false_negative_rate(res.constraint_mask, p.ctx["true"]),
                    RFD=None, SR=None, n_learned=k, stop_reason=res.stop_reason)
-        img = constraint_map(p.layout, p.cost_basis, res.constraint_mask.double(), 0.5,
-                             f"{name}: learned cell constraints (x)")
+        row["constraints"] = constraint_names(p.cost_basis, res.constraint_mask.double(), 0.5)
+        img = constraint_map(p.layout, row["constraints"], f"{name}: learned cell constraints (x)")
         logger.image(run, "eval/constraint_map", img, k)
         matplotlib.image.imsave(out / f"constraints_{name}.png", img)
         logger.scalar(run, "eval/CR", row["CR_mean"], k)
@@ -479,19 +523,6 @@ def run_baselines(cfg, p: Problem, logger, out: Path) -> tuple[dict, dict]:
         methods[name] = {"D": "×", "NATR": "×", "learners": [row]}
         histories[name] = history
     return methods, histories
-
-
-def print_table(methods: dict) -> None:
-    head = f"{'':26s}{'D':>3s}{'NATR':>6s}{'CR':>20s}{'FPR':>7s}{'FNR':>7s}{'CVR':>8s}{'RFD':>8s}"
-    print(head)
-    fmt = lambda x, f: "N/A" if x is None else format(x, f)  # noqa: E731
-    for name, m in methods.items():
-        for j, r in enumerate(m["learners"]):
-            label = f"{name} {j + 1}" if len(m["learners"]) > 1 else name
-            d, natr = m.get("D", "N/A"), m.get("NATR", "N/A")
-            print(f"{label:26s}{d:>3s}{natr:>6s}{r['CR_mean']:11.2f} ± {r['CR_std']:6.2f}"
-                  f"{fmt(r['FPR'], '.2f'):>7s}{fmt(r['FNR'], '.2f'):>7s}"
-                  f"{r['CVR']:8.3f}{fmt(r['RFD'], '.3f'):>8s}")
 
 
 # ---------------------------------------------------------------------- training
@@ -580,31 +611,45 @@ class Checkpoints:
             os.kill(os.getpid(), sig)
 
 
-def atomic_write(path: Path, write: Callable[[Path], Any]) -> None:
-    """``write(tmp)`` then rename ``tmp`` to ``path``: readers see the old file or the new
-    one, never half of one. An exception (or an interrupting signal) removes ``tmp``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        write(tmp)
-        tmp.replace(path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+def policy_of(solution) -> Callable:
+    """The ``policy_at`` of what ``DICRL.policy`` returns: a learner model's solution
+    wrapping its soft-Bellman solution (``.soft_bellman``), or that solution itself."""
+    return getattr(solution, "soft_bellman", solution).policy_at
 
 
-def log_outer(logger, run_of: RunOf, trainer: DICRL, info: dict, ctx, threshold: float,
-              log_network: bool) -> None:
+def rollouts_due(done: int, cfg) -> bool:
+    """Whether the curves get CR/CVR rollouts after ``done`` outer iterations: the first
+    (where the curves start), every ``eval_every``-th and the last."""
+    return done == 1 or done % cfg.eval_every == 0 or done == cfg.algo.outer_iterations
+
+
+def outer_metrics(trainer: DICRL, ctx, threshold: float, rollouts: bool) -> dict[str, list]:
+    """This outer iteration's metrics of the local learners, lists in local order.
+
+    FPR and FNR (of ``ω_c >= threshold``, before the final pruning) and RFD always; CR
+    (mean return) and CVR when ``rollouts``: ``ctx["episodes"]`` episodes of each
+    learner's policy in the true CMG, with the table rows' common random numbers.
+    """
+    learned = [learned_constraints(w, threshold) for w in trainer.state.cost_weights]
+    metrics = {"FPR": [false_positive_rate(m, ctx["true"]) for m in learned],
+               "FNR": [false_negative_rate(m, ctx["true"]) for m in learned],
+               "RFD": [reward_function_distance(eta[:-1], ctx["w_true"])
+                       for eta in trainer.state.eta_bar]}
+    if rollouts:
+        rows = [evaluate(policy_of(trainer.policy(i)), ctx) for i in range(len(trainer.local))]
+        metrics.update(CR=[r["CR_mean"] for r in rows], CVR=[r["CVR"] for r in rows])
+    return metrics
+
+
+def log_outer(logger, run_of: RunOf, trainer: DICRL, info: dict, log_network: bool) -> None:
+    """TensorBoard values of the history entry ``info`` (with :func:`outer_metrics`)."""
     n = info["outer_iteration"]
     for i, v in enumerate(trainer.local):
-        run = run_of(v)
-        learned = learned_constraints(trainer.state.cost_weights[i], threshold)
-        logger.scalar(run, "outer/multiplier", info["multiplier"][i], n)
-        logger.scalar(run, "outer/lga_norm", info["lga_norm"][i], n)
-        logger.scalar(run, "eval/FPR", false_positive_rate(learned, ctx["true"]), n)
-        logger.scalar(run, "eval/FNR", false_negative_rate(learned, ctx["true"]), n)
-        logger.scalar(run, "eval/RFD", reward_function_distance(
-            trainer.state.eta_bar[i, :-1], ctx["w_true"]), n)
+        for tag, key in (("outer/multiplier", "multiplier"), ("outer/lga_norm", "lga_norm"),
+                         ("eval/FPR", "FPR"), ("eval/FNR", "FNR"), ("eval/RFD", "RFD"),
+                         ("eval/CR", "CR"), ("eval/CVR", "CVR")):
+            if key in info:  # CR and CVR: only where rollouts_due
+                logger.scalar(run_of(v), tag, info[key][i], n)
     if trainer.n_learners > 1:
         gap = trainer.disagreement()  # gathers every ω_c: each learner process takes part
         if log_network:
@@ -683,7 +728,13 @@ def train(name: str, trainer: DICRL, ckpt: Checkpoints, logger, run_of: RunOf, c
     a = cfg.algo
 
     def after_outer(t: DICRL, info: dict) -> None:
-        log_outer(logger, run_of, t, info, ctx, a.threshold, log_network)
+        # Into the history entry (info is trainer.history[-1]), before the checkpoint that
+        # keeps it: results.json's curves (dicrl_torch.figures) and a resumed run's history
+        # come from there. Lists per local learner, as "multiplier": a distributed run's
+        # per-rank histories merge by concatenation (merge_learner_rows).
+        info.update(outer_metrics(t, ctx, a.threshold,
+                                  rollouts_due(t.state.outer_iteration, cfg)))
+        log_outer(logger, run_of, t, info, log_network)
         if t.state.outer_iteration % cfg.checkpoint_every == 0:
             ckpt.save(name, t)
         if stop is not None and stop.signum is not None:
@@ -700,16 +751,6 @@ def train(name: str, trainer: DICRL, ckpt: Checkpoints, logger, run_of: RunOf, c
         if stop is not None:
             stop.training = False
     ckpt.save(name, trainer)
-
-
-def make_logger(cfg, out: Path):
-    return instantiate(cfg.logger, **({"root": out / "tb"} if "TensorBoard" in
-                                      cfg.logger._target_ else {}))
-
-
-def write_json(path: Path, obj) -> None:
-    text = json.dumps(obj, indent=1)  # before opening anything: a failure writes nothing
-    atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
@@ -743,7 +784,6 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
         row = evaluate(sol.policy_at, p.ctx)
         row.update(FPR=None, FNR=None, RFD=0.0, SR=None)
         methods[name] = {"learners": [row]}
-    logger.close()
 
     results = {
         "experiment": cfg.name, "wall_s": time.perf_counter() - t_start,
@@ -754,11 +794,65 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
         "config": OmegaConf.to_container(cfg, resolve=True),
     }
     write_json(out / "results.json", results)
+    # After results.json: a figure that fails to draw loses no result.
+    figures = write_figures(cfg, out, p, methods, results["history"], logger)
+    logger.close()
     print()
     print_table(methods)
     print(f"\nwall time {results['wall_s']:.0f} s; consensus max ‖ω_c − ω_c'‖ = "
           f"{results['consensus_max_pairwise_cost_distance']:.1e}")
     print(f"results, TensorBoard runs (tb/) and figures in {out.resolve()}")
+    print("figures:\n" + "\n".join(f"  {path.resolve()}" for path in figures))
+
+
+def write_figures(cfg, out: Path, p: Problem, methods: dict, histories: dict,
+                  logger) -> list[Path]:
+    """The paper's Fig. 2 for this run, as PNG in ``out`` and TensorBoard images of the
+    run ``figures``: 2a, the experts' visitation with the true constraints; 2b, the
+    same with each bi-level learner's learned constraints (after pruning); 2c-2g, the
+    metric curves over outer iterations, greedy baselines and experts as reference lines.
+
+    ``methods``: the table (rows by method), ``histories``: ``results.json``'s history.
+    Bi-level methods are those with an outer-iteration history; methods without a
+    history are expert rows.
+    """
+    bilevel = [k for k in methods if k in histories and k not in BASELINES]
+    visits = state_visitation(p.demos.states, p.layout.n_cells)
+    colour = "colour: share of expert trajectories entering the cell"
+    images = {"fig2a_true_visitation": visitation_heatmap(
+        p.layout, visits, constraint_cells=obstacle_cells(p.layout),
+        title=f"Fig. 2a: the true CMG, its constraints (x)\n{colour}")}
+    panels = []
+    for name in bilevel:
+        rows = methods[name]["learners"]
+        for v, row in enumerate(rows):
+            who = f"{name} learner {v + 1}" if len(rows) > 1 else name
+            # Action and collision constraints have no cell to cross: named in the title.
+            off_grid = [n for n in row["constraints"] if not constraint_cells(p.layout, [n])]
+            listed = ", ".join(off_grid[:4]) + (f" and {len(off_grid) - 4} more"
+                                                if len(off_grid) > 4 else "")
+            panels.append(visitation_heatmap(
+                p.layout, visits, constraint_cells=constraint_cells(p.layout, row["constraints"]),
+                title=f"Fig. 2b: {who}, learned constraints (x)\n"
+                      f"not on a cell: {listed or 'none'}\n"
+                      f"FPR {row['FPR']:.2f}, FNR {row['FNR']:.2f} (after pruning)\n{colour}"))
+    if panels:
+        images["fig2b_learned_constraints"] = side_by_side(panels)
+    if bilevel:
+        images["fig2c-g_metric_curves"] = metric_curves(
+            {k: histories[k] for k in bilevel},
+            final_rows={k: methods[k]["learners"] for k in bilevel},
+            baselines={k: methods[k]["learners"][0] for k in BASELINES if k in methods},
+            experts={k: m["learners"][0] for k, m in methods.items() if k not in histories},
+            title=f"{cfg.name}: {p.layout.n_experts} expert(s), {len(cfg.split)} learner(s) "
+                  f"holding {list(cfg.split)} of {cfg.n_demonstrations} demonstrations "
+                  f"(CR, CVR: {cfg.eval_episodes} episodes every {cfg.eval_every} outer "
+                  f"iterations)")
+    paths = []
+    for tag, img in images.items():
+        paths.append(save_png(out / f"{tag}.png", img))
+        logger.image("figures", tag, img, cfg.algo.outer_iterations)
+    return paths
 
 
 # ---------------------------------------------------------------------- all in one process
@@ -987,7 +1081,11 @@ def main(cfg: DictConfig) -> None:
         print(f"error: {e}", file=sys.stderr, flush=True)
         sys.exit(2)
     torch.set_num_threads(int(os.environ.get("DICRL_THREADS", torch.get_num_threads())))
-    if not issubclass(get_class(cfg.comm._target_), DistributedCommunicator):
+    if is_drone_run(cfg):
+        from drones import run_drones  # imports stable-baselines3: only for the arena
+
+        run_drones(cfg, out, t_start)
+    elif is_simulated(cfg):
         if int(os.environ.get("WORLD_SIZE", "1")) > 1:
             raise ValueError(f"Started as one of WORLD_SIZE={os.environ['WORLD_SIZE']} "
                              f"processes (torchrun?) with comm={cfg.comm._target_}, which runs "

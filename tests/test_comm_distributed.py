@@ -99,7 +99,7 @@ def _trainer_body(rank, world_size, init_method, outer_iterations):
                 "inner_processes": [h["inner_processes"] for h in t.history],
                 # plain tuples: results come back through torch.load(weights_only=True)
                 "messages": [(m.field, m.shape, m.sender) for m in comm.messages],
-                "dims": (t.fc.dim, t.fr.dim + 1)}
+                "dims": (t.learner_model.cost_dim, t.learner_model.reward_dim + 1)}
 
 
 def _dies_body(rank, world_size, init_method):

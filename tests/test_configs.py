@@ -17,17 +17,24 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
 
 
-def group_options(group: str) -> list[str]:
-    return sorted(p.stem for p in (CONFIGS / group).glob("*.yaml"))
+def group_options(group: str, world: str | None = None) -> list[str]:
+    """The options of a config group; with ``world``, only the grid world's ("grid") or
+    the drone arena's ("drones") (a drone option builds drone modules or the arena)."""
+    paths = sorted((CONFIGS / group).glob("*.yaml"))
+    if world is not None:
+        def is_drone(text):
+            return "features.drone" in text or "arena:" in text
+        paths = [p for p in paths if is_drone(p.read_text()) == (world == "drones")]
+    return [p.stem for p in paths]
 
 
 def build(cfg, **objects):
     return instantiate(cfg, _partial_=True)(**objects)
 
 
-@pytest.mark.parametrize("env", group_options("env"))
-@pytest.mark.parametrize("cost", group_options("features/cost"))
-@pytest.mark.parametrize("reward", group_options("features/reward"))
+@pytest.mark.parametrize("env", group_options("env", "grid"))
+@pytest.mark.parametrize("cost", group_options("features/cost", "grid"))
+@pytest.mark.parametrize("reward", group_options("features/reward", "grid"))
 def test_every_target_instantiates(env, cost, reward):
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose(config_name="demo", overrides=[
@@ -44,6 +51,21 @@ def test_every_target_instantiates(env, cost, reward):
     # every _target_ in the composed config was consumed above
     targets = [k for k in OmegaConf.to_yaml(cfg).splitlines() if "_target_" in k]
     assert len(targets) >= 5
+
+
+@pytest.mark.parametrize("cost", group_options("features/cost", "drones"))
+@pytest.mark.parametrize("reward", group_options("features/reward", "drones"))
+def test_every_drone_target_instantiates(cost, reward):
+    assert group_options("env", "drones") == ["drones"]
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=[
+            "experiment=table2_quick", f"features/cost={cost}", f"features/reward={reward}"])
+    rb, cb = instantiate(cfg.features.reward), instantiate(cfg.features.cost)
+    solver = build(cfg.solver.solver, reward_basis=rb, cost_basis=cb, seed=0,
+                   env_kwargs={**cfg.env.arena, "max_steps": 5})
+    sol = solver.solve([0.0] * rb.dim + [-1.0], [0.0] * cb.dim, 0, n_eval_episodes=1)
+    assert sol.mu_r.shape == (rb.dim,) and sol.mu_c.shape == (cb.dim,)
+    assert cb.true_constraints().shape == (cb.dim,)
 
 
 def test_demo_runs_end_to_end(tmp_path):

@@ -88,7 +88,7 @@ def test_the_lga_raises_unvisited_features_and_lambda_falls(setup):
 def test_privacy_audit_only_documented_fields(setup):
     t = make(setup, record=True)
     t.train(2)
-    d, p = t.fc.dim, t.fr.dim + 1
+    d, p = t.learner_model.cost_dim, t.learner_model.reward_dim + 1
     sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,), "inner_tracker": (p,)}
     assert t.comm.messages
     for msg in t.comm.messages:
@@ -141,8 +141,9 @@ def test_pruning_keeps_exactly_the_constraints_the_likelihood_needs(setup):
     demos = t.shards[0]
 
     def ll(w):
-        sol = t.solver.solve(model_reward(t.fr, t.fc, eta[:-1], float(eta[-1]), w),
-                             forward=False)
+        lm = t.learner_model
+        sol = lm.solver.solve(model_reward(lm.fr, lm.fc, eta[:-1], float(eta[-1]), w),
+                              forward=False)
         return log_likelihood(sol, demos) / demos.n_trajectories
 
     base = ll(t.state.cost_weights[0])
@@ -162,8 +163,7 @@ def test_gradient_tracking_inner_variant_converges_faster(setup):
         t = make(setup, init_cost=0.3, **kw)
         t.K = 20
         bar, _ = t.inner_process(cw, t.state.eta[0])
-        return float(torch.stack([t.m[i] * dual_gradient(t.solve(bar[i], cw), st, t.fr,
-                                                         t.fc, cw)
+        return float(torch.stack([t.m[i] * dual_gradient(t.solve(i, bar[i], cw), st, cw)
                                   for i, st in enumerate(t.stats)]).sum(0).norm())
 
     paper = residual()

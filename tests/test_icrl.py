@@ -14,6 +14,7 @@ from dicrl_torch.algos.icrl import (
     log_likelihood,
     model_reward,
 )
+from dicrl_torch.algos.models import TabularSolution
 from dicrl_torch.demos.experts import sample_trajectories
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel
 from dicrl_torch.features.bases import (
@@ -44,7 +45,8 @@ def test_lga_matches_finite_difference_of_local_log_likelihood(cost_basis, lam):
         return log_likelihood(solver.solve(model_reward(fr, fc, w_r, lam, wc), forward=False),
                               demos)
 
-    lga = local_gradient(solver.solve(model_reward(fr, fc, w_r, lam, w_c)), stats, fc, lam)
+    lga = local_gradient(TabularSolution(solver.solve(model_reward(fr, fc, w_r, lam, w_c)), fr, fc),
+                         stats, lam)
     h = 1e-5
     fd = torch.zeros(fc.dim, dtype=torch.float64)
     for j in range(fc.dim):
@@ -68,10 +70,10 @@ def test_dual_gradient_is_moment_mismatch():
     # demonstrations from the same policy: the gradient is sampling noise only
     demos = sample_trajectories(sol, 3000, np.random.default_rng(1))
     stats = LocalStatistics.from_demonstrations(demos, fr, fc, model.gamma)
-    grad = dual_gradient(sol, stats, fr, fc, w_c)
+    grad = dual_gradient(TabularSolution(sol, fr, fc), stats, w_c)
     assert grad.shape == (fr.dim + 1,)
     assert grad.abs().max() < 0.1
     # a shifted reward weight moves the reward-moment part with the right sign
     sol_hi = solver.solve(model_reward(fr, fc, w_r * 2, -1.0, w_c))
-    grad_hi = dual_gradient(sol_hi, stats, fr, fc, w_c)
+    grad_hi = dual_gradient(TabularSolution(sol_hi, fr, fc), stats, w_c)
     assert grad_hi[: fr.dim].sum() > grad[: fr.dim].sum()

@@ -330,7 +330,7 @@ def test_messages_hold_only_documented_fields_and_no_local_statistics(tiny, inne
                                 init_cost=0.3)
     t.train(2)
     t.disagreement()
-    d, p = t.fc.dim, t.fr.dim + 1
+    d, p = t.learner_model.cost_dim, t.learner_model.reward_dim + 1
     sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,), "inner_tracker": (p,)}
     assert set(sizes) == set(ALLOWED_FIELDS)
     fields = {f for f, _ in comm.sent}

@@ -39,17 +39,11 @@ from dataclasses import dataclass, field
 
 import torch
 
-from dicrl_torch.algos.icrl import (
-    LocalStatistics,
-    dual_gradient,
-    local_gradient,
-    log_likelihood,
-    model_reward,
-)
+from dicrl_torch.algos.icrl import dual_gradient, local_gradient
+from dicrl_torch.algos.models import LearnerModel, ModelSolution, TabularLearnerModel
 from dicrl_torch.comm.graphs import MixingSchedule, check_inner_schedule, check_outer_schedule
-from dicrl_torch.demos.storage import Demonstrations
 from dicrl_torch.features.bases import FeatureBasis
-from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
+from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 Schedule = MixingSchedule
 
@@ -113,9 +107,13 @@ class DICRL:
     """The D-ICRL trainer.
 
     Args:
-        solver: the factored soft-Bellman solver of the learners' model.
-        reward_basis, cost_basis: feature bases (``φ_r`` and ``φ_c``).
-        shards: demonstrations of the local learners, in ``communicator.local_ids`` order.
+        learner_model: the learners' model of the experts (bases + inner solver, see
+            :mod:`dicrl_torch.algos.models`), e.g. the drones' ``SACLearnerModel``.
+        solver, reward_basis, cost_basis: shorthand for
+            ``learner_model=TabularLearnerModel(solver=..., reward_basis=...,
+            cost_basis=...)`` (the grid world); give these or ``learner_model``.
+        shards: demonstrations of the local learners, in ``communicator.local_ids`` order
+            (whatever the learner model reads: grid ``Demonstrations``, drone pairs).
         trajectory_counts: ``m^[v]`` of *every* learner (public: it scales the steps).
         communicator: mixes η, ω_c and trackers between learners.
         inner_schedule, outer_schedule: ``k -> W(k)`` and ``n -> W̄(n)`` ``[N_L, N_L]``.
@@ -133,8 +131,10 @@ class DICRL:
             scalar; init_multiplier λ(0).
     """
 
-    def __init__(self, *, solver: FactoredSoftBellman, reward_basis: FeatureBasis,
-                 cost_basis: FeatureBasis, shards: Sequence[Demonstrations],
+    def __init__(self, *, learner_model: LearnerModel | None = None,
+                 solver: FactoredSoftBellman | None = None,
+                 reward_basis: FeatureBasis | None = None,
+                 cost_basis: FeatureBasis | None = None, shards: Sequence,
                  trajectory_counts: Sequence[int], communicator, inner_schedule: Schedule,
                  outer_schedule: Schedule, steps: StepSizes = StepSizes(),
                  inner_steps: int = 10, lsca_curvature: float = 1.0,
@@ -148,15 +148,26 @@ class DICRL:
         self.comm = communicator
         N_L = communicator.n_learners
         local = communicator.local_ids
+        if learner_model is None:
+            if solver is None or reward_basis is None or cost_basis is None:
+                raise ValueError("Give learner_model, or solver, reward_basis and cost_basis "
+                                 "(the tabular grid-world model).")
+            learner_model = TabularLearnerModel(solver=solver, reward_basis=reward_basis,
+                                                cost_basis=cost_basis)
+        elif solver is not None or reward_basis is not None or cost_basis is not None:
+            raise ValueError("Give either learner_model or solver/reward_basis/cost_basis, "
+                             "not both.")
+        self.learner_model = learner_model
         if len(shards) != len(local):
             raise ValueError(f"{len(shards)} demonstration shards for {len(local)} local "
                              f"learners {local}; give one shard per local learner.")
         if len(trajectory_counts) != N_L:
             raise ValueError(f"trajectory_counts lists {len(trajectory_counts)} learners, "
                              f"the communicator has {N_L}.")
-        for v, shard in zip(local, shards, strict=True):
-            if shard.n_trajectories != trajectory_counts[v]:
-                raise ValueError(f"Learner {v} holds {shard.n_trajectories} trajectories but "
+        self.stats = [learner_model.statistics(s) for s in shards]
+        for v, st in zip(local, self.stats, strict=True):
+            if st.m != trajectory_counts[v]:
+                raise ValueError(f"Learner {v} holds {st.m} trajectories but "
                                  f"trajectory_counts says {trajectory_counts[v]}; the shard "
                                  f"partition and the counts must agree.")
         # Assumptions 1-3 are checked before any computation.
@@ -175,11 +186,6 @@ class DICRL:
             raise ValueError(f"inner_steps (K) must be >= 2, got {inner_steps}.")
         if not lsca_curvature > 0:
             raise ValueError(f"lsca_curvature must be > 0, got {lsca_curvature}.")
-        self.solver, self.model = solver, solver.model
-        self.reward_basis, self.cost_basis = reward_basis, cost_basis
-        self.fr, self.fc = reward_basis(), cost_basis()
-        self.stats = [LocalStatistics.from_demonstrations(s, self.fr, self.fc, self.model.gamma)
-                      for s in shards]
         self.shards = list(shards)
         self.m = torch.tensor([float(trajectory_counts[v]) for v in local], dtype=torch.float64)
         self.inner_schedule, self.outer_schedule = inner_schedule, outer_schedule
@@ -187,7 +193,7 @@ class DICRL:
         self.rho, self.prune_accrued = float(lsca_curvature), prune_accrued
         self.progress, self.merge = progress, merge_identical_inner
         self.n_learners, self.local = N_L, local
-        d, lr = self.fc.dim, self.fr.dim
+        d, lr = learner_model.cost_dim, learner_model.reward_dim
         self.accrued = torch.stack([s.cost_accrual > 0 for s in self.stats])  # [n, d]
 
         cw = torch.as_tensor(init_cost_weights, dtype=torch.float64)
@@ -239,7 +245,7 @@ class DICRL:
         hint = ("Lower the step sizes (algo.steps.alpha_bar, algo.inner_step, "
                 "algo.steps.beta_bar) or raise algo.lsca_curvature, and solve in float64 "
                 "(solver.dtype=float64)")
-        if getattr(self.solver, "dtype", None) == torch.float32:
+        if getattr(self.learner_model, "dtype", None) == torch.float32:
             hint += ("; the solver computes in float32, which overflows beyond ~3.4e38 and "
                      "loses the policy's accuracy from |V| ~ 1e7 on")
         raise NonFiniteError(
@@ -247,17 +253,17 @@ class DICRL:
             f"{values[i].flatten()[:8].tolist()}. {hint}.")
 
     # ------------------------------------------------------------------ model pieces
-    def solve(self, eta: torch.Tensor, cost_weights: torch.Tensor) -> SoftBellmanSolution:
+    def solve(self, i: int, eta: torch.Tensor, cost_weights: torch.Tensor) -> ModelSolution:
+        """Local learner ``i``'s policy for ``η`` ``[p]`` and ``ω_c`` ``[d]``."""
         self.solves += 1
-        reward = model_reward(self.fr, self.fc, eta[:-1], float(eta[-1]), cost_weights)
-        return self.solver.solve(reward)
+        return self.learner_model.solve(i, eta, cost_weights)
 
     # ------------------------------------------------------------------ inner process
     def _scaled_gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor,
                           k: int) -> torch.Tensor:
         """``m^[v] ∇G^[v](η^[v]; ω_c)`` of every local learner: ``[n, p]``."""
         grads = torch.stack([
-            dual_gradient(self.solve(eta[i], cost_weights), st, self.fr, self.fc, cost_weights)
+            dual_gradient(self.solve(i, eta[i], cost_weights), st, cost_weights)
             for i, st in enumerate(self.stats)])
         if self.logger is not None:
             step = self.state.outer_iteration * self.K + k
@@ -349,8 +355,8 @@ class DICRL:
 
         # Local gradient approximation at each learner's own (ω_c, η̄).
         lga = torch.stack([
-            local_gradient(self.solve(st.eta_bar[i], st.cost_weights[i]), self.stats[i],
-                           self.fc, float(st.eta_bar[i, -1]))
+            local_gradient(self.solve(i, st.eta_bar[i], st.cost_weights[i]), self.stats[i],
+                           float(st.eta_bar[i, -1]))
             for i in range(len(self.local))])
         self._check_finite("The local gradient (LGA)", lga)
         W_bar = self.outer_schedule(n)
@@ -427,16 +433,17 @@ class DICRL:
 
     def fingerprint(self) -> str:
         """Shapes and settings a checkpoint must match."""
-        return (f"NL={self.n_learners} local={self.local} d={self.fc.dim} lr={self.fr.dim} "
+        lm = self.learner_model
+        return (f"NL={self.n_learners} local={self.local} d={lm.cost_dim} lr={lm.reward_dim} "
                 f"K={self.K} steps={self.steps} rho={self.rho} prune={self.prune_accrued} "
                 f"inner={self.inner_method}:{self.inner_step} "
-                f"m={self.m.tolist()} T={self.model.horizon} S1={self.model.n_cells} "
-                f"N={self.model.n_experts}")
+                f"m={self.m.tolist()} {lm.describe()}")
 
     # ------------------------------------------------------------------ outputs
-    def policy(self, i: int) -> SoftBellmanSolution:
-        """Local learner ``i``'s learned policy π_{η̄, ω_c}."""
-        return self.solve(self.state.eta_bar[i], self.state.cost_weights[i])
+    def policy(self, i: int) -> ModelSolution:
+        """Local learner ``i``'s learned policy π_{η̄, ω_c} (for the tabular model a
+        :class:`~dicrl_torch.algos.models.TabularSolution`)."""
+        return self.solve(i, self.state.eta_bar[i], self.state.cost_weights[i])
 
     def prune_constraints(self, i: int, threshold: float = 0.5, min_gain: float = 1e-3,
                           progress: bool = False) -> tuple[torch.Tensor, list[int]]:
@@ -455,9 +462,13 @@ class DICRL:
         """
         eta = self.state.eta_bar[i]
         cw = self.state.cost_weights[i].clone()
-        base = log_likelihood(self.solver.solve(model_reward(
-            self.fr, self.fc, eta[:-1], float(eta[-1]), cw), forward=False), self.shards[i])
-        m = self.shards[i].n_trajectories
+
+        def ll(w: torch.Tensor) -> float:
+            self.solves += 1
+            return self.learner_model.log_likelihood(i, eta, w, self.shards[i])
+
+        base = ll(cw)
+        m = self.stats[i].m
         candidates = torch.nonzero(cw >= threshold).flatten().tolist()
         if progress:
             from tqdm.auto import tqdm
@@ -466,10 +477,7 @@ class DICRL:
         for j in candidates:
             trial = cw.clone()
             trial[j] = 0.0
-            sol = self.solver.solve(model_reward(self.fr, self.fc, eta[:-1], float(eta[-1]),
-                                                 trial), forward=False)
-            self.solves += 1
-            if (base - log_likelihood(sol, self.shards[i])) / m < min_gain:
+            if (base - ll(trial)) / m < min_gain:
                 pruned.append(j)
         out = self.state.cost_weights[i].clone()
         out[pruned] = 0.0

@@ -65,6 +65,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -237,7 +238,7 @@ class GreedyStep:
 
 @dataclass
 class GreedyResult:
-    """Output of :meth:`GreedyConstraintInference.run`.
+    """Output of :meth:`GreedyLoop.run`.
 
     Attributes:
         constraint_mask: ``[l]`` bool, the learned constraints.
@@ -248,8 +249,9 @@ class GreedyResult:
             decrease), for curves over iterations.
         steps: every evaluated candidate: the accepted ones, infeasible ones and the
             rejected last one.
-        solution: the final model (a :class:`SoftBellmanSolution` with occupancies;
-            ``solution.policy_at`` rolls out with ``dicrl_torch.metrics.rollout_true_cmg``).
+        solution: the final model (grid: a :class:`SoftBellmanSolution` with occupancies,
+            ``solution.policy_at`` rolls out with ``dicrl_torch.metrics.rollout_true_cmg``;
+            drones: a ``SACSolution``).
         terminal_value: ``[S1]*N`` terminal mask of the final model (or None).
         stop_reason: why the greedy stopped.
         model: ``"me"`` or ``"mce"``.
@@ -262,14 +264,101 @@ class GreedyResult:
     log_likelihood: list[float]
     improvement: list[float]
     steps: list[GreedyStep]
-    solution: SoftBellmanSolution
+    solution: Any
     terminal_value: torch.Tensor | None
     stop_reason: str
     model: str
     seconds: float = 0.0
 
 
-class GreedyConstraintInference:
+class GreedyLoop:
+    """Scobee & Sastry's greedy loop, independent of the model of the demonstrator.
+
+    A subclass sets ``candidates`` ``[l]`` bool, ``names``, ``epsilon``,
+    ``max_constraints``, ``progress``, ``label`` and ``model_name`` and implements
+    :meth:`solve`, :meth:`mean_log_likelihood` and :meth:`expected_accrual`; a
+    stateful model (a warm-started policy) also overrides :meth:`accept`.
+    """
+
+    candidates: torch.Tensor
+    names: list[str]
+    epsilon: float
+    max_constraints: int
+    progress: bool
+    label: str
+    model_name: str
+
+    def solve(self, selected: torch.Tensor) -> tuple[Any, Any]:
+        """The model with constraint set ``selected`` ``[l]`` bool: (solution, extra)."""
+        raise NotImplementedError
+
+    def mean_log_likelihood(self, solution: Any) -> float:
+        raise NotImplementedError
+
+    def expected_accrual(self, solution: Any) -> torch.Tensor:
+        """``[l]`` the model's expected discounted accrual of each feature."""
+        raise NotImplementedError
+
+    def accept(self, solution: Any, extra: Any) -> None:
+        """Called when ``solution`` becomes the current model (a no-op by default)."""
+
+    def run(self) -> GreedyResult:
+        t_start = time.perf_counter()
+        selected = torch.zeros(len(self.candidates), dtype=torch.bool)
+        sol, extra = self.solve(selected)
+        self.accept(sol, extra)
+        ll = self.mean_log_likelihood(sol)
+        lls, gains, added, steps = [ll], [], [], []
+        infeasible = torch.zeros_like(selected)
+        bar = None
+        if self.progress:
+            from tqdm.auto import tqdm
+            total = min(self.max_constraints, int(self.candidates.sum()))
+            bar = tqdm(total=total, desc=self.label)
+        stop = "max_constraints reached"
+        while len(added) < self.max_constraints:
+            accrual = self.expected_accrual(sol)  # [l]
+            open_ = self.candidates & ~selected & ~infeasible & (accrual > _NEGLIGIBLE_ACCRUAL)
+            if not open_.any():
+                stop = "no feasible candidate left with non-negligible expected accrual"
+                break
+            j = int(torch.where(open_, accrual, -math.inf).argmax())
+            t0 = time.perf_counter()
+            trial = selected.clone()
+            trial[j] = True
+            new_sol, new_extra = self.solve(trial)
+            new_ll = self.mean_log_likelihood(new_sol)
+            gain = new_ll - ll
+            bad = new_ll == -math.inf  # contradicts a demonstration (module docstring)
+            accepted = not bad and gain >= self.epsilon
+            steps.append(GreedyStep(feature=j, name=self.names[j], accrual=float(accrual[j]),
+                                    log_likelihood=new_ll, improvement=gain, accepted=accepted,
+                                    infeasible=bad, seconds=time.perf_counter() - t0))
+            if bad:
+                infeasible[j] = True  # more masks only keep it impossible: never retry
+                continue
+            if not accepted:
+                stop = f"improvement {gain:.3g} < epsilon {self.epsilon:g}"
+                break
+            selected, sol, extra, ll = trial, new_sol, new_extra, new_ll
+            self.accept(sol, extra)
+            added.append(j)
+            lls.append(ll)
+            gains.append(gain)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(added=self.names[j], ll=f"{ll:.2f}")
+        if bar is not None:
+            bar.close()
+        return GreedyResult(constraint_mask=selected, added=added,
+                            added_names=[self.names[j] for j in added], log_likelihood=lls,
+                            improvement=gains, steps=steps, solution=sol,
+                            terminal_value=extra if isinstance(extra, torch.Tensor) else None,
+                            stop_reason=stop, model=self.model_name,
+                            seconds=time.perf_counter() - t_start)
+
+
+class GreedyConstraintInference(GreedyLoop):
     """Greedy constraint inference with a given reward (ME-greedy / MCE-greedy).
 
     Args:
@@ -328,6 +417,7 @@ class GreedyConstraintInference:
         self.epsilon = math.log(m_demo) / (2 * m_demo) if epsilon is None else float(epsilon)
         self.max_constraints = features.dim if max_constraints is None else max_constraints
         self.progress = progress
+        self.label = f"{self.kind.name}-greedy"
         self.candidates = ~demonstrated_features(features, demonstrations, m.gamma)  # [l]
         self.solves = 0
 
@@ -344,58 +434,8 @@ class GreedyConstraintInference:
         """Mean log-likelihood per demonstration (nats) under the chosen model."""
         return self.kind.log_likelihood(solution, self.demos) / self.demos.n_trajectories
 
-    # ------------------------------------------------------------------ loop
-    def run(self) -> GreedyResult:
-        t_start = time.perf_counter()
-        selected = torch.zeros(self.features.dim, dtype=torch.bool)
-        sol, terminal = self.solve(selected)
-        ll = self.mean_log_likelihood(sol)
-        lls, gains, added, steps = [ll], [], [], []
-        infeasible = torch.zeros_like(selected)
-        bar = None
-        if self.progress:
-            from tqdm.auto import tqdm
-            total = min(self.max_constraints, int(self.candidates.sum()))
-            bar = tqdm(total=total, desc=f"{self.kind.name}-greedy")
-        stop = "max_constraints reached"
-        while len(added) < self.max_constraints:
-            accrual = sol.feature_expectation(self.features)  # [l]
-            open_ = self.candidates & ~selected & ~infeasible & (accrual > _NEGLIGIBLE_ACCRUAL)
-            if not open_.any():
-                stop = "no feasible candidate left with non-negligible expected accrual"
-                break
-            j = int(torch.where(open_, accrual, -math.inf).argmax())
-            t0 = time.perf_counter()
-            trial = selected.clone()
-            trial[j] = True
-            new_sol, new_terminal = self.solve(trial)
-            new_ll = self.mean_log_likelihood(new_sol)
-            gain = new_ll - ll
-            bad = new_ll == -math.inf  # contradicts a demonstration (module docstring)
-            accepted = not bad and gain >= self.epsilon
-            steps.append(GreedyStep(feature=j, name=self.names[j], accrual=float(accrual[j]),
-                                    log_likelihood=new_ll, improvement=gain, accepted=accepted,
-                                    infeasible=bad, seconds=time.perf_counter() - t0))
-            if bad:
-                infeasible[j] = True  # more masks only keep it impossible: never retry
-                continue
-            if not accepted:
-                stop = f"improvement {gain:.3g} < epsilon {self.epsilon:g}"
-                break
-            selected, sol, terminal, ll = trial, new_sol, new_terminal, new_ll
-            added.append(j)
-            lls.append(ll)
-            gains.append(gain)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(added=self.names[j], ll=f"{ll:.2f}")
-        if bar is not None:
-            bar.close()
-        return GreedyResult(constraint_mask=selected, added=added,
-                            added_names=[self.names[j] for j in added], log_likelihood=lls,
-                            improvement=gains, steps=steps, solution=sol,
-                            terminal_value=terminal, stop_reason=stop, model=self.model_name,
-                            seconds=time.perf_counter() - t_start)
+    def expected_accrual(self, solution: SoftBellmanSolution) -> torch.Tensor:
+        return solution.feature_expectation(self.features)
 
 
 def me_greedy(**kwargs) -> GreedyResult:
@@ -428,3 +468,76 @@ def reachable_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward
     sol = solver.solve(reward, backup="causal")
     mu = sol.feature_expectation(features)
     return true_mask.bool() & (mu >= min_accrual)
+
+
+class SACGreedyConstraintInference(GreedyLoop):
+    """M(C)E-greedy on the drone arena, with the SAC-style solver as the model.
+
+    The paper's §6.2 protocol: the greedy is given the reward learned by D-ICRL
+    (``ω_r``), all pairs pooled. A constraint set C is enforced by the penalty
+    ``−penalty · Σ_{j∈C} φ_j`` (a continuous policy cannot be masked), i.e. the solver's
+    ``η = [ω_r, −penalty]`` with ``ω_c`` the indicator of C. The arena's noise is small,
+    so the ME and MCE models coincide (as the paper says): one row, ``"M(C)E"``.
+
+    Every trial trains a *clone* of the current solver for ``timesteps`` steps; an
+    accepted trial's clone becomes the current model, a rejected one is dropped, so the
+    warm-started policy always belongs to the accepted constraint set.
+
+    Args:
+        solver: a (pre-trained) :class:`~dicrl_torch.solvers.sac.SACConstrainedSolver`.
+        reward_weights: ``[l_r]`` the given ``ω_r``.
+        demonstrations: all pairs (``DroneDemonstrations``).
+        penalty: the per-step penalty of entering a constraint (in reward units).
+        timesteps: SAC steps per trial.
+        epsilon: stop below this gain in nats per pair; None: ``ln(m) / (2m)`` (BIC).
+        max_constraints: at most this many (None: no limit).
+        progress: a tqdm bar over greedy steps.
+    """
+
+    def __init__(self, *, solver, reward_weights, demonstrations, penalty: float = 10.0,
+                 timesteps: int = 2000, epsilon: float | None = None,
+                 max_constraints: int | None = None, progress: bool = False) -> None:
+        from dicrl_torch.solvers.sac import SACConstrainedSolver, discounted_demo_feature_sums
+
+        if not isinstance(solver, SACConstrainedSolver):
+            raise TypeError(f"solver must be a SACConstrainedSolver, got {type(solver).__name__}.")
+        if not (penalty > 0 and math.isfinite(penalty)):
+            raise ValueError(f"penalty must be a positive number, got {penalty!r}.")
+        if not isinstance(timesteps, int) or timesteps < 1:
+            raise ValueError(f"timesteps must be an int >= 1, got {timesteps!r}.")
+        if epsilon is not None and not (epsilon >= 0.0 and math.isfinite(epsilon)):
+            raise ValueError(f"epsilon must be a finite number >= 0 (nats per pair), got "
+                             f"{epsilon!r}.")
+        w = torch.as_tensor(reward_weights, dtype=torch.float64).flatten()
+        if w.shape != (solver.l_r,) or not torch.isfinite(w).all():
+            raise ValueError(f"reward_weights must be {solver.l_r} finite numbers, got "
+                             f"{w.tolist()}.")
+        self.solver, self.demos, self.penalty, self.timesteps = solver, demonstrations, \
+            float(penalty), timesteps
+        self.eta = torch.cat([w, torch.tensor([-self.penalty], dtype=torch.float64)])
+        sums = discounted_demo_feature_sums(demonstrations, solver.cost_basis, solver.gamma,
+                                            absorbing=solver.absorbing)  # [m, l]
+        self.candidates = ~(sums > _POSITIVE).any(0)
+        self.names = list(getattr(solver.cost_basis, "names",
+                                  [f"feature {j}" for j in range(solver.l_c)]))
+        m = demonstrations.n_pairs
+        self.epsilon = math.log(m) / (2 * m) if epsilon is None else float(epsilon)
+        self.max_constraints = solver.l_c if max_constraints is None else int(max_constraints)
+        self.progress, self.label, self.model_name = progress, "M(C)E-greedy", "m(c)e"
+        self._trials = 0
+
+    def solve(self, selected: torch.Tensor):
+        self._trials += 1
+        trial = self.solver.clone(self.solver.seed + self._trials)
+        sol = trial.solve(self.eta, selected.double(), self.timesteps)
+        return sol, trial
+
+    def accept(self, solution, extra) -> None:
+        self.solver = extra
+
+    def mean_log_likelihood(self, solution) -> float:
+        # The policy IS the solver's state: score under the trial's own solver.
+        return solution.solver.log_likelihood(self.demos) / self.demos.n_pairs
+
+    def expected_accrual(self, solution) -> torch.Tensor:
+        return solution.mu_c

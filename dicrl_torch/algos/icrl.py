@@ -70,21 +70,19 @@ class LocalStatistics:
         )
 
 
-def dual_gradient(solution: SoftBellmanSolution, stats: LocalStatistics,
-                  reward_features: FactoredFeatures, cost_features: FactoredFeatures,
-                  cost_weights: torch.Tensor) -> torch.Tensor:
-    """``∇_η G^[v] = [μ_r(π_η) − μ̂_r^[v], J_ωc(π_η) − b̂_ωc^[v]]``: ``[l_r + 1]``."""
-    mu_r = solution.feature_expectation(reward_features)
-    mu_c = solution.feature_expectation(cost_features)
+def dual_gradient(solution, stats: LocalStatistics, cost_weights: torch.Tensor) -> torch.Tensor:
+    """``∇_η G^[v] = [μ_r(π_η) − μ̂_r^[v], J_ωc(π_η) − b̂_ωc^[v]]``: ``[l_r + 1]``.
+
+    ``solution``: any policy with expectations ``mu_r`` ``[l_r]`` and ``mu_c`` ``[l_c]``
+    (:class:`dicrl_torch.algos.models.ModelSolution`)."""
     w = cost_weights.double()
-    return torch.cat([mu_r - stats.mu_r_hat, (w @ (mu_c - stats.cost_accrual)).reshape(1)])
+    return torch.cat([solution.mu_r - stats.mu_r_hat,
+                      (w @ (solution.mu_c - stats.cost_accrual)).reshape(1)])
 
 
-def local_gradient(solution: SoftBellmanSolution, stats: LocalStatistics,
-                   cost_features: FactoredFeatures, multiplier: float) -> torch.Tensor:
+def local_gradient(solution, stats: LocalStatistics, multiplier: float) -> torch.Tensor:
     """LGA ``λ (m b_acc − m E_π[Σ γ^t φ_c])``: ``[l_c]`` (see the module docstring)."""
-    mu_c = solution.feature_expectation(cost_features)
-    return float(multiplier) * stats.m * (stats.cost_accrual - mu_c)
+    return float(multiplier) * stats.m * (stats.cost_accrual - solution.mu_c)
 
 
 def log_likelihood(solution: SoftBellmanSolution, demos: Demonstrations) -> float:

@@ -39,6 +39,7 @@ from dicrl_torch.envs.drones import (
     ROOM_SIZE,
     door_centres,
     in_obstacle,
+    in_own_door,
     obstacle_cell_mask,
 )
 
@@ -255,7 +256,8 @@ class DoorLocationRewardBasis(DroneFeatureBasis):
     (the position projected on the unit vector towards the door, in units of the
     route's length) and ``closeness = 1 - clip(|p_i - g_i| / (10 sqrt 2), 0, 1)``, both
     times ``coefficient``. ``l = 4`` (drone 0's pair, then drone 1's), values in
-    ``[0, coefficient]``.
+    ``[0, coefficient]``. A drone in the mouth of its own door has arrived: both its
+    features are then ``coefficient``.
 
     Args:
         coefficient: the scale of the features, ``max_value``.
@@ -280,7 +282,12 @@ class DoorLocationRewardBasis(DroneFeatureBasis):
         progress = (((pos - s) * axis).sum(-1) / (axis * axis).sum(-1)).clamp(0.0, 1.0)
         dist = torch.linalg.vector_norm(pos - g, dim=-1)
         closeness = 1.0 - (dist / (ROOM_SIZE * np.sqrt(2.0))).clamp(0.0, 1.0)
-        return self.coefficient * torch.stack([progress, closeness], -1).flatten(-2)
+        # A drone in the mouth of its door has arrived: it is at its goal. Without this,
+        # hovering just below the door earns (almost) what arriving earns, and an
+        # entropy-regularised policy has no reason to go through.
+        feats = torch.stack([progress, closeness], -1)
+        feats = torch.where(in_own_door(pos)[..., None], 1.0, feats)
+        return self.coefficient * feats.flatten(-2)
 
 
 class FourierRewardBasis(DroneFeatureBasis):

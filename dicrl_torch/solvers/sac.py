@@ -51,6 +51,7 @@ Design choices, and why:
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import random
 from collections.abc import Iterator, Sequence
@@ -78,6 +79,7 @@ from dicrl_torch.envs.drones import (
 __all__ = [
     "FeatureReplayBuffer",
     "SACConstrainedSolver",
+    "SACLearnerModel",
     "SACSolution",
     "discounted_demo_feature_sums",
     "joint_obs_from_states",
@@ -337,6 +339,8 @@ class SACSolution:
         eta: ``[l_r + 1]`` float64 ``[ω_r, λ]`` the policy was trained for (or None).
         cost_weights: ``[l_c]`` float64 ``ω_c`` (or None).
         timesteps: env steps the SAC model had taken when evaluated.
+        paths: per episode the drones' positions ``[L+1, 2, 2]`` (with
+            ``evaluate(trajectories=True)``), else None.
     """
 
     reward_sums: torch.Tensor
@@ -348,6 +352,7 @@ class SACSolution:
     cost_weights: torch.Tensor | None
     timesteps: int
     solver: SACConstrainedSolver | None = field(default=None, repr=False, compare=False)
+    paths: list[np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     @property
     def n_episodes(self) -> int:
@@ -533,7 +538,7 @@ class SACConstrainedSolver:
         self._eval_rng = np.random.default_rng([self.seed, 1])
         self._eval_gen = torch.Generator(device=self.device)
         self._eval_gen.manual_seed(int(np.random.default_rng([self.seed, 2]).integers(2**62)))
-        self._eval_envs: list[JointDroneEnv] = []
+        self._eval_envs: dict[bool, list[JointDroneEnv]] = {False: [], True: []}
 
         kwargs = dict(sac_kwargs or {})
         for key in ("ent_coef", "replay_buffer_class", "seed", "gamma"):
@@ -583,6 +588,23 @@ class SACConstrainedSolver:
         finally:
             self._rng_state = _capture_rng(cuda)
             _restore_rng(caller, cuda)
+
+    def clone(self, seed: int) -> SACConstrainedSolver:
+        """A copy of this solver — networks, optimisers, replay buffer, envs — with its
+        own random streams seeded from ``seed``: learners warm-started from one shared
+        pre-trained policy, as all start from the same ``η(0)``, then diverge."""
+        if not _is_int(seed):
+            raise ValueError(f"seed must be an int, got {seed!r}.")
+        twin = copy.deepcopy(self)
+        twin.seed = int(seed)
+        twin._rng_state = None  # fresh private streams from the new seed at next use
+        twin._eval_rng = np.random.default_rng([twin.seed, 1])
+        twin._eval_gen.manual_seed(int(np.random.default_rng([twin.seed, 2]).integers(2**62)))
+        twin.model.action_space.seed(twin.seed)
+        # The episodes in flight go on, on streams of their own (not the original's).
+        for k, env in enumerate(twin.vec_env.envs):
+            env.unwrapped.arena._rng = np.random.default_rng([twin.seed, 3, k])
+        return twin
 
     # ---- accessors ----------------------------------------------------------------
     @property
@@ -640,20 +662,33 @@ class SACConstrainedSolver:
         eps = torch.randn(mean.shape, generator=self._eval_gen, device=self.device)
         return torch.tanh(mean + log_std.exp() * eps).cpu().numpy()
 
-    def evaluate(self, n_episodes: int | None = None, *,
-                 deterministic: bool = False) -> SACSolution:
-        """Roll out the current policy for ``n_episodes`` episodes (in the solver's game)
-        and estimate the discounted feature sums (absorbing terminal, as in training).
+    def evaluate(self, n_episodes: int | None = None, *, deterministic: bool = False,
+                 true_game: bool = False, rng: np.random.Generator | None = None,
+                 trajectories: bool = False) -> SACSolution:
+        """Roll out the current policy for ``n_episodes`` episodes and estimate the
+        discounted feature sums (absorbing terminal, as in training).
 
         Episodes are stepped in lock-step so the actor runs once per step on a batch.
+
+        Args:
+            n_episodes: rollouts (default the solver's ``n_eval_episodes``).
+            deterministic: act with ``tanh`` of the mean.
+            true_game: roll out in the game with the TRUE constraints (violators freeze:
+                the metrics SR and CVR), not the solver's nominal game.
+            rng: draws the episodes' env seeds (default the solver's own evaluation
+                stream); pass a fresh seeded generator to compare policies on common
+                random numbers.
+            trajectories: also keep the positions ``[n, L+1, 2, 2]`` (for figures).
         """
         n = self.n_eval_episodes if n_episodes is None else n_episodes
         if not _is_int(n) or n < 1:
             raise ValueError(f"n_episodes must be a positive int, got {n!r}.")
-        while len(self._eval_envs) < n:
-            self._eval_envs.append(JointDroneEnv(**self.env_kwargs))
-        envs = self._eval_envs[:n]
-        seeds = self._eval_rng.integers(0, 2**31 - 1, size=n)
+        cache = self._eval_envs[bool(true_game)]
+        kwargs = {**self.env_kwargs, "constrained": True} if true_game else self.env_kwargs
+        while len(cache) < n:
+            cache.append(JointDroneEnv(**kwargs))
+        envs = cache[:n]
+        seeds = (self._eval_rng if rng is None else rng).integers(0, 2**31 - 1, size=n)
         obs = np.stack([env.reset(seed=int(s))[0] for env, s in zip(envs, seeds, strict=True)])
         sums_r, sums_c = np.zeros((n, self.l_r)), np.zeros((n, self.l_c))
         lengths = np.zeros(n, dtype=np.int64)
@@ -662,6 +697,7 @@ class SACConstrainedSolver:
         disc = np.ones(n)
         alive = np.ones(n, dtype=bool)
         bonus = 1.0 / (1.0 - self.gamma) if self.absorbing else 1.0
+        paths = [[joint_obs_to_state(o)[:, :2]] for o in obs] if trajectories else None
         while alive.any():
             idx = np.flatnonzero(alive)
             actions = self.act(obs[idx], deterministic)
@@ -673,6 +709,8 @@ class SACConstrainedSolver:
                 reached[i] |= info["reached"]
                 violated[i] |= info["violated"]
                 lengths[i] += 1
+                if paths is not None:
+                    paths[i].append(np.array(info["state"])[:, :2])
                 if term or trunc:
                     alive[i] = False
             w = disc[idx] * np.where(terminal, bonus, 1.0)
@@ -687,6 +725,7 @@ class SACConstrainedSolver:
             cost_weights=None if self.cost_weights is None
             else torch.from_numpy(self.cost_weights.copy()),
             timesteps=self.num_timesteps, solver=self,
+            paths=None if paths is None else [np.stack(p) for p in paths],
         )
 
     # ---- likelihood ---------------------------------------------------------------
@@ -729,5 +768,85 @@ class SACConstrainedSolver:
     def close(self) -> None:
         """Close the training and evaluation envs."""
         self.vec_env.close()
-        for env in self._eval_envs:
+        for env in self._eval_envs[False] + self._eval_envs[True]:
             env.close()
+
+
+# ----------------------------------------------------------------------- D-ICRL's model
+class SACLearnerModel:
+    """The drone learners' model for the D-ICRL trainer (:mod:`dicrl_torch.algos.models`).
+
+    Each local learner owns one :class:`SACConstrainedSolver`: SAC is warm-started across
+    calls, so a solver's state is that learner's policy. Every :meth:`solve` continues
+    training for ``timesteps`` env steps on the new ``(η, ω_c)`` and then estimates
+    ``μ_r``, ``μ_c`` from ``n_eval_episodes`` rollouts; the estimates are noisy, which the
+    trainer's diminishing steps average out.
+
+    Args:
+        solvers: one solver per local learner (same bases, discount and game).
+        timesteps: env steps of SAC training per solve (per inner step).
+        n_eval_episodes: rollouts per estimate (default each solver's own).
+    """
+
+    def __init__(self, *, solvers: Sequence[SACConstrainedSolver], timesteps: int,
+                 n_eval_episodes: int | None = None) -> None:
+        solvers = list(solvers)
+        if not solvers or not all(isinstance(s, SACConstrainedSolver) for s in solvers):
+            raise ValueError("solvers must be a non-empty list of SACConstrainedSolver, one "
+                             "per local learner.")
+        first = solvers[0]
+        for s in solvers[1:]:
+            if (s.l_r, s.l_c, s.gamma, s.absorbing) != (first.l_r, first.l_c, first.gamma,
+                                                         first.absorbing):
+                raise ValueError("All learners' solvers must share the feature bases' "
+                                 "widths, gamma and the absorbing convention.")
+        if not _is_int(timesteps) or timesteps < 0:
+            raise ValueError(f"timesteps must be an int >= 0, got {timesteps!r}.")
+        if n_eval_episodes is not None and (not _is_int(n_eval_episodes)
+                                            or n_eval_episodes < 1):
+            raise ValueError(f"n_eval_episodes must be a positive int, got {n_eval_episodes!r}.")
+        self.solvers, self.timesteps, self.n_eval_episodes = solvers, int(timesteps), \
+            n_eval_episodes
+        self.reward_dim, self.cost_dim = first.l_r, first.l_c
+        self.dtype = None
+
+    def _solver(self, learner: int) -> SACConstrainedSolver:
+        if not 0 <= learner < len(self.solvers):
+            raise ValueError(f"learner {learner} has no solver: this model holds "
+                             f"{len(self.solvers)}; give one solver per local learner.")
+        return self.solvers[learner]
+
+    def statistics(self, demos: DroneDemonstrations):
+        """``μ̂_r``, the cost accrual and ``m`` of a learner's pairs, counted as the
+        solver counts its rollouts (next-state features, absorbing end)."""
+        from dicrl_torch.algos.icrl import LocalStatistics
+
+        s = self.solvers[0]
+        if not isinstance(demos, DroneDemonstrations) or demos.n_pairs < 1:
+            raise ValueError("A drone learner needs DroneDemonstrations with at least one "
+                             "pair.")
+
+        def mean(basis: nn.Module) -> torch.Tensor:
+            return discounted_demo_feature_sums(demos, basis, s.gamma,
+                                                absorbing=s.absorbing).mean(0)
+
+        return LocalStatistics(m=demos.n_pairs, mu_r_hat=mean(s.reward_basis),
+                               cost_accrual=mean(s.cost_basis))
+
+    def solve(self, learner: int, eta: torch.Tensor, cost_weights: torch.Tensor
+              ) -> SACSolution:
+        return self._solver(learner).solve(eta, cost_weights, self.timesteps,
+                                           n_eval_episodes=self.n_eval_episodes)
+
+    def log_likelihood(self, learner: int, eta: torch.Tensor, cost_weights: torch.Tensor,
+                       demos: DroneDemonstrations) -> float:
+        """Trains on ``(η, ω_c)`` for ``timesteps`` first (the policy IS the solver's
+        state), then scores ``demos`` under it."""
+        solver = self._solver(learner)
+        solver.solve(eta, cost_weights, self.timesteps, n_eval_episodes=1)
+        return solver.log_likelihood(demos)
+
+    def describe(self) -> str:
+        s = self.solvers[0]
+        return (f"SAC x{len(self.solvers)} steps={self.timesteps} gamma={s.gamma} "
+                f"ent={s.ent_coef} absorbing={s.absorbing}")

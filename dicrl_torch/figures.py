@@ -1,0 +1,283 @@
+"""The paper's Fig. 2 (§6.1) for a run: visitation heat maps and metric curves.
+
+- :func:`visitation_heatmap`: where the experts go (:func:`state_visitation` of the
+  demonstrations, or a solver's occupancy), with constraints as red crosses: the true
+  ones (Fig. 2a) or a learner's learned ones (Fig. 2b).
+- :func:`metric_curves`: CR, FPR, FNR, CVR and RFD against the outer iteration, one line
+  per learner, the baselines and experts as horizontal reference lines (Fig. 2c-2g).
+
+Pure functions of arrays and plain dicts (the ``history`` and table rows of
+``results.json``): no Hydra, no trainer. Every figure is drawn on a private Agg canvas,
+never pyplot's global state (safe headless and in threads), and returned as an RGB
+``uint8`` image ``[H, W, 3]``, which :func:`save_png` writes and a logger's ``image``
+takes as is.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+
+from dicrl_torch.envs.grid import GridLayout
+from dicrl_torch.envs.gridworld_env import render_grid
+
+# (history key, table-row key, panel title): the panels of Fig. 2c-2g, in the paper's
+# order. A history holds "CR" (the mean return of the evaluation episodes), the table
+# row "CR_mean".
+METRICS: tuple[tuple[str, str, str], ...] = (
+    ("CR", "CR_mean", "(c) CR: cumulative true reward"),
+    ("FPR", "FPR", "(d) FPR: false positive rate"),
+    ("FNR", "FNR", "(e) FNR: false negative rate"),
+    ("CVR", "CVR", "(f) CVR: constraint violation rate"),
+    ("RFD", "RFD", "(g) RFD: reward function distance"),
+)
+# Recorded after every outer iteration; CR and CVR (rollouts, costly) only every few.
+EVERY_ITERATION = ("FPR", "FNR", "RFD")
+CURVES_FIGSIZE = (20.0, 5.0)  # inches; 1 x 5 panels and the legend below them
+DPI = 80
+_CELL_NAME = re.compile(r"(?:^|/)cell\((\d+),(\d+)\)$")
+
+
+# ---------------------------------------------------------------------- heat maps
+def state_visitation(states, n_cells: int, *, gamma: float | None = None) -> np.ndarray:
+    """Per-cell visitation ``[S1]`` of demonstrations ``states [m, T+1, N]``.
+
+    Args:
+        states: integer cells of ``N`` experts over ``m`` trajectories
+            (``Demonstrations.states``).
+        n_cells: ``S1``.
+        gamma: None (what the figures show): the fraction of the ``m * N`` expert
+            trajectories that enter the cell at least once, in ``[0, 1]``; an expert that
+            waits at its goal for most of the horizon then does not wash its path out of
+            the colour scale. A number: the discounted number of the ``T`` decision steps
+            spent in the cell, ``Σ_t γ^t 1[s_t = s]`` averaged over the expert
+            trajectories, the empirical counterpart of a solver's occupancy,
+            ``solution.local_occupancy.sum(2).mean(0)``.
+
+    Raises:
+        ValueError: ``states`` is not an integer ``[m, T+1, N]`` array of cells in
+            ``[0, n_cells)``, or ``gamma`` is not in ``(0, 1]``.
+    """
+    s = np.asarray(states)
+    if s.ndim != 3 or s.shape[0] == 0 or s.shape[1] < 2 or not np.issubdtype(s.dtype, np.integer):
+        raise ValueError(f"states must be an integer array [m, T+1, N] with m >= 1 and "
+                         f"T >= 1 (Demonstrations.states), got {s.dtype} {list(s.shape)}.")
+    if s.min() < 0 or s.max() >= n_cells:
+        raise ValueError(f"states hold cells outside [0, {n_cells}); pass the n_cells of the "
+                         f"layout the demonstrations were recorded in.")
+    m, _, n = s.shape
+    if gamma is None:
+        visited = np.zeros((m * n, n_cells), dtype=bool)
+        rows = np.repeat(np.arange(m * n), s.shape[1])
+        visited[rows, s.transpose(0, 2, 1).reshape(-1)] = True
+        return visited.mean(0)
+    if not 0 < gamma <= 1:
+        raise ValueError(f"gamma must be None or in (0, 1], got {gamma!r}.")
+    decisions = s[:, :-1]  # the T states an action is taken in, as in the occupancy
+    weight = np.broadcast_to((gamma ** np.arange(decisions.shape[1]))[None, :, None],
+                             decisions.shape)
+    return np.bincount(decisions.reshape(-1), weights=weight.reshape(-1),
+                       minlength=n_cells) / (m * n)
+
+
+def constraint_cells(layout: GridLayout, names: Iterable[str]) -> list[int]:
+    """Cell indices of the cell-constraint features among ``names`` (``cell(x,y)``, or
+    ``expert<i>/cell(x,y)`` in a per-expert basis); action and collision constraints,
+    and features of a basis without cells, have no cell and are left out."""
+    cells = []
+    for name in names:
+        if match := _CELL_NAME.search(name):
+            x, y = int(match[1]), int(match[2])
+            if not (0 <= x < layout.size and 0 <= y < layout.size):
+                raise ValueError(f"constraint {name!r} lies outside the {layout.size}x"
+                                 f"{layout.size} grid; pass the layout it was learned on.")
+            cells.append(layout.cell((x, y)))
+    return sorted(set(cells))
+
+
+def obstacle_cells(layout: GridLayout) -> list[int]:
+    """The true cell constraints of ``layout`` (its obstacles), as cell indices."""
+    return sorted(layout.cell(c) for c in layout.obstacles)
+
+
+def visitation_heatmap(layout: GridLayout, visitation, *,
+                       constraint_cells: Iterable[int] = (), title: str = "") -> np.ndarray:
+    """The grid coloured by ``visitation`` ``[S1]`` (e.g. :func:`state_visitation`),
+    true obstacles hatched, starts as circles, goals as stars, ``constraint_cells`` as
+    red crosses: the true constraints (Fig. 2a) or learned ones (Fig. 2b).
+
+    Returns:
+        The RGB image ``[H, W, 3]`` uint8.
+
+    Raises:
+        ValueError: ``visitation`` is not ``[S1]`` finite values >= 0.
+    """
+    v = np.asarray(visitation, dtype=np.float64)
+    if v.shape != (layout.n_cells,) or not np.all(np.isfinite(v)) or (v < 0).any():
+        raise ValueError(f"visitation must hold one finite value >= 0 per cell, shape "
+                         f"[{layout.n_cells}]; got shape {list(v.shape)}. Compute it with "
+                         f"state_visitation(demos.states, layout.n_cells).")
+    return render_grid(layout, heat=v, constraint_cells=constraint_cells, title=title)
+
+
+def side_by_side(images: Sequence[np.ndarray]) -> np.ndarray:
+    """Images ``[H_k, W_k, 3]`` in one row (shorter ones padded with white below)."""
+    if not images:
+        raise ValueError("side_by_side needs at least one image.")
+    h = max(im.shape[0] for im in images)
+    return np.concatenate([np.pad(im, ((0, h - im.shape[0]), (0, 0), (0, 0)),
+                                  constant_values=255) for im in images], axis=1)
+
+
+# ---------------------------------------------------------------------- metric curves
+def _learner_series(method: str, history: Sequence[Mapping]) -> tuple[np.ndarray, dict]:
+    """``x`` ``[n]`` (outer iterations done, 1-based) and per metric ``[n, L]`` values
+    (NaN where not evaluated) of a method's history.
+
+    Raises:
+        ValueError: naming the method, the outer iteration and the fix.
+    """
+    if not history:
+        raise ValueError(f"the history of {method!r} is empty: it has no outer iteration to "
+                         f"plot; leave the method out.")
+    n_learners, first = None, None
+    x, values = [], {key: [] for key, _, _ in METRICS}
+    for j, entry in enumerate(history):
+        if "outer_iteration" not in entry:
+            raise ValueError(
+                f"the history of {method!r} has no 'outer_iteration' in entry {j}: it is not "
+                f"a bi-level method's (a greedy baseline's history counts constraints added); "
+                f"pass a baseline's final table row in baselines= instead.")
+        n = int(entry["outer_iteration"])
+        if x and n <= x[-1] - 1:
+            raise ValueError(f"the history of {method!r} goes back from outer iteration "
+                             f"{x[-1] - 1} to {n}; pass the history of one run, in order.")
+        x.append(n + 1)
+        for key, _, _ in METRICS:
+            v = entry.get(key)
+            if v is None:
+                if key in EVERY_ITERATION:
+                    raise ValueError(
+                        f"the history of {method!r} has no {key!r} at outer iteration {n}: "
+                        f"it was written before experiments/train.py recorded the metrics "
+                        f"of every outer iteration; rerun the experiment.")
+                values[key].append(None)
+                continue
+            if not isinstance(v, list | tuple):
+                raise ValueError(f"the history of {method!r} holds {key}={v!r} at outer "
+                                 f"iteration {n}; it must be a list, one value per learner.")
+            if n_learners is None:
+                n_learners, first = len(v), (n, key)
+            elif len(v) != n_learners:
+                raise ValueError(
+                    f"the history of {method!r} has mismatched lengths: outer iteration {n} "
+                    f"holds {len(v)} {key!r} values, outer iteration {first[0]} "
+                    f"{n_learners} {first[1]!r} values; every per-learner list needs one "
+                    f"value per learner. Pass the history of one run as results.json holds "
+                    f"it (a distributed run's learners merged by merge_learner_rows).")
+            values[key].append(v)
+    if not n_learners:
+        raise ValueError(f"the history of {method!r} holds no learner's values; leave the "
+                         f"method out.")
+    nan = [np.nan] * n_learners
+    return np.asarray(x), {k: np.array([nan if v is None else v for v in vs], dtype=float)
+                           for k, vs in values.items()}
+
+
+def metric_curves(histories: Mapping[str, Sequence[Mapping]], *,
+                  final_rows: Mapping[str, Sequence[Mapping]] | None = None,
+                  baselines: Mapping[str, Mapping] | None = None,
+                  experts: Mapping[str, Mapping] | None = None,
+                  title: str = "") -> np.ndarray:
+    """Fig. 2c-2g: CR, FPR, FNR, CVR and RFD against the outer iteration, 1 x 5 panels.
+
+    Args:
+        histories: bi-level method (``"D-ICRL"``, ``"C-ICRL"``) -> its ``results.json``
+            history: one entry per outer iteration with ``outer_iteration`` and
+            per-learner lists ``FPR``, ``FNR``, ``RFD`` (every iteration) and ``CR``,
+            ``CVR`` (where evaluated). One line per learner: ``"<method> learner <v>"``,
+            or the method's name when it has one learner.
+        final_rows: method -> its table rows (one per learner; ``CR_mean``, ``FPR``, ...),
+            drawn as hollow diamonds at the last iteration: the table's values, after
+            pruning, where the curves show the constraints before it.
+        baselines: name -> final table row of a method that is not bi-level (the greedy
+            baselines): a dotted horizontal line at each metric it has.
+        experts: name -> table row (the expert rows): a dashed horizontal line at each
+            metric it has (None: not applicable, e.g. an expert's FPR).
+        title: the figure's title.
+
+    Returns:
+        The RGB image ``[H, W, 3]`` uint8, ``H, W = CURVES_FIGSIZE[::-1] * DPI``.
+
+    Raises:
+        ValueError: no history, or one that is not a bi-level method's, lacks a metric,
+            or holds per-learner lists of mismatched lengths.
+    """
+    if not histories:
+        raise ValueError("metric_curves needs the history of at least one bi-level method "
+                         "(e.g. results.json's history['D-ICRL']).")
+    series = {method: _learner_series(method, h) for method, h in histories.items()}
+    fig = Figure(figsize=CURVES_FIGSIZE, dpi=DPI, layout="constrained")
+    canvas = FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(METRICS))
+    colours = iter(f"C{k}" for k in range(1000))
+    lines = []  # (method, learner, label, colour, line width)
+    for method, (_, values) in series.items():
+        n_learners = values["FPR"].shape[1]
+        for v in range(n_learners):
+            label = f"{method} learner {v + 1}" if n_learners > 1 else method
+            lines.append((method, v, label, next(colours), 1.4 if n_learners > 1 else 2.2))
+    references = [(name, row, ":", f"{name} (final)", next(colours))
+                  for name, row in (baselines or {}).items()]
+    references += [(name, row, "--", name, next(colours)) for name, row in (experts or {}).items()]
+    last_x = max(x[-1] for x, _ in series.values())
+    for ax, (key, row_key, panel) in zip(axes, METRICS, strict=True):
+        for method, v, label, colour, lw in lines:
+            x, values = series[method]
+            y = values[key][:, v]
+            shown = ~np.isnan(y)  # CR and CVR: only the evaluated iterations
+            sparse = not shown.all()
+            ax.plot(x[shown], y[shown], "o-" if sparse else "-", ms=4, color=colour,
+                    label=label, lw=lw)
+            rows = (final_rows or {}).get(method)
+            if rows is not None and v < len(rows) and rows[v].get(row_key) is not None:
+                ax.plot([x[-1]], [rows[v][row_key]], "D", ms=8, mfc="none", mec=colour,
+                        mew=1.5, zorder=4)
+        for _, row, style, label, colour in references:
+            if row.get(row_key) is not None:
+                ax.axhline(row[row_key], ls=style, lw=1.5, color=colour, label=label)
+        ax.set_title(panel, fontsize=11)
+        ax.set_xlabel("outer iteration")
+        ax.set_ylabel(key)
+        ax.set_xlim(0.5, last_x + 0.5)
+        if key in ("FPR", "FNR"):
+            ax.set_ylim(-0.03, 1.03)  # rates: the full range, so that panels compare
+        ax.grid(alpha=0.3)
+    handles = {}
+    for ax in axes:  # one legend for all panels: each label once
+        for h, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(label, h)
+    if final_rows:
+        handles["table value (after pruning)"] = Line2D([], [], ls="", marker="D", ms=8,
+                                                        mfc="none", mec="0.2", mew=1.5)
+    fig.legend(handles.values(), handles.keys(), loc="outside lower center",
+               ncol=min(len(handles), 6), fontsize=10, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=12)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+
+
+def save_png(path: str | Path, image: np.ndarray) -> Path:
+    """Write an RGB ``[H, W, 3]`` uint8 image as a PNG; returns the path."""
+    import matplotlib.image
+
+    path = Path(path)
+    matplotlib.image.imsave(path, image)
+    return path

@@ -1,0 +1,87 @@
+"""Pieces every experiment entry point shares: building configured objects, atomic
+result files, the logger and the results table (DESIGN §8)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from hydra.utils import instantiate
+
+
+def build(cfg, **objects):
+    """Instantiate ``cfg`` with built objects as keyword arguments."""
+    return instantiate(cfg, _partial_=True)(**objects)
+
+
+def atomic_write(path: Path, write: Callable[[Path], Any]) -> None:
+    """``write(tmp)`` then rename ``tmp`` to ``path``: readers see the old file or the new
+    one, never half of one. An exception (or an interrupting signal) removes ``tmp``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        write(tmp)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def trainer_settings(cfg, n_learners: int) -> dict[str, Any]:
+    """The :class:`~dicrl_torch.algos.dicrl.DICRL` keyword arguments read from ``cfg.algo``
+    and ``cfg.graph``, for a run of ``n_learners`` learners (C-ICRL: 1) whatever the
+    environment; the caller adds the learner model, shards and communicator."""
+    a = cfg.algo
+    graph = {k: build(cfg.graph[k], n_learners=n_learners) for k in ("inner", "outer")}
+    # Consensus averages the learners' steps α m^[v] ∇G^[v] into α (m / N_L) ∇G; one
+    # learner with all m trajectories takes the same step on G with α / N_L.
+    steps = instantiate(a.steps)
+    scale = n_learners / len(cfg.split)
+    steps = type(steps)(alpha_bar=steps.alpha_bar * scale, beta_bar=steps.beta_bar,
+                        beta_power=steps.beta_power)
+    return dict(inner_schedule=graph["inner"], outer_schedule=graph["outer"], steps=steps,
+                inner_steps=a.inner_steps, lsca_curvature=a.lsca_curvature,
+                prune_accrued=a.prune_accrued, init_cost_weights=a.init_cost_weights,
+                init_reward_weights=a.init_reward_weights, init_multiplier=a.init_multiplier,
+                inner_method=a.inner_method, inner_step=a.inner_step * scale)
+
+
+def write_json(path: Path, obj) -> None:
+    text = json.dumps(obj, indent=1)  # before opening anything: a failure writes nothing
+    atomic_write(path, lambda tmp: tmp.write_text(text))
+
+
+def make_logger(cfg, out: Path):
+    return instantiate(cfg.logger, **({"root": out / "tb"} if "TensorBoard" in
+                                      cfg.logger._target_ else {}))
+
+
+# The paper's Table 1 (grid world) and Table 2 (drones) metric columns.
+TABLE1_COLUMNS = ("CR", "FPR", "FNR", "CVR", "RFD")
+TABLE2_COLUMNS = ("FPR", "FNR", "CVR", "SR")
+_FORMATS = {"FPR": (7, ".2f"), "FNR": (7, ".2f"), "CVR": (8, ".3f"), "RFD": (8, ".3f"),
+            "SR": (7, ".2f")}
+
+
+def print_table(methods: dict, columns: Sequence[str] = TABLE1_COLUMNS) -> None:
+    """Print ``methods`` (``{name: {"D", "NATR", "learners": [row, ...]}}``) in the paper's
+    layout: one line per learner, a metric that does not apply as N/A."""
+    fmt = lambda x, f: "N/A" if x is None else format(x, f)  # noqa: E731
+    head = f"{'':26s}{'D':>3s}{'NATR':>6s}"
+    for c in columns:
+        head += f"{'CR':>20s}" if c == "CR" else f"{c:>{_FORMATS[c][0]}s}"
+    print(head)
+    for name, m in methods.items():
+        for j, r in enumerate(m["learners"]):
+            label = f"{name} {j + 1}" if len(m["learners"]) > 1 else name
+            line = f"{label:26s}{m.get('D', 'N/A'):>3s}{m.get('NATR', 'N/A'):>6s}"
+            for c in columns:
+                if c == "CR":
+                    line += (f"{r['CR_mean']:11.2f} ± {r['CR_std']:6.2f}"
+                             if r.get("CR_mean") is not None else f"{'N/A':>20s}")
+                else:
+                    width, f = _FORMATS[c]
+                    line += f"{fmt(r.get(c), f):>{width}s}"
+            print(line)

@@ -1,0 +1,203 @@
+"""The same D-ICRL trainer on the drone arena: SACLearnerModel, solver clones, the
+M(C)E-greedy baseline and the Table 2 entry point (experiment=table2_quick)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from dicrl_torch.algos.dicrl import DICRL, StepSizes
+from dicrl_torch.algos.greedy import SACGreedyConstraintInference
+from dicrl_torch.algos.models import LearnerModel
+from dicrl_torch.comm import CompleteSchedule, SimulatedCommunicator
+from dicrl_torch.comm.distributed import ALLOWED_FIELDS
+from dicrl_torch.demos.drone_demos import make_drone_demonstrations, partition_drone_demonstrations
+from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
+from dicrl_torch.solvers.sac import (
+    SACConstrainedSolver,
+    SACLearnerModel,
+    discounted_demo_feature_sums,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+GAMMA = 0.95
+
+
+def make_solver(seed: int = 0) -> SACConstrainedSolver:
+    return SACConstrainedSolver(
+        reward_basis=DoorLocationRewardBasis(), cost_basis=CellOccupancyCostBasis(), seed=seed,
+        n_envs=2, gamma=GAMMA, learning_starts=40, batch_size=16, net_arch=(16, 16),
+        env_kwargs={"max_steps": 20}, n_eval_episodes=2)
+
+
+@pytest.fixture(scope="module")
+def demos():
+    return make_drone_demonstrations(3, rng=np.random.default_rng(0))
+
+
+class Recorder(SimulatedCommunicator):
+    def __init__(self, n):
+        super().__init__(n)
+        self.fields = set()
+
+    def mix(self, x, W, field):
+        self.fields.add(field)
+        return super().mix(x, W, field)
+
+    def all_gather(self, x, field):
+        self.fields.add(field)
+        return super().all_gather(x, field)
+
+
+def trainer(demos, seed: int, communicator=None) -> DICRL:
+    base = make_solver(seed)
+    shards = partition_drone_demonstrations(demos, [1, 2])
+    model = SACLearnerModel(solvers=[base.clone(seed + 10), base.clone(seed + 11)],
+                            timesteps=30, n_eval_episodes=2)
+    return DICRL(learner_model=model, shards=shards, trajectory_counts=[1, 2],
+                 communicator=communicator or SimulatedCommunicator(2),
+                 inner_schedule=CompleteSchedule(n_learners=2),
+                 outer_schedule=CompleteSchedule(n_learners=2),
+                 steps=StepSizes(alpha_bar=0.01), inner_steps=2, lsca_curvature=20.0,
+                 prune_accrued=True, init_cost_weights=0.0, init_reward_weights=1.0)
+
+
+def test_learner_model_statistics_are_the_demonstrations_feature_sums(demos):
+    model = SACLearnerModel(solvers=[make_solver()], timesteps=10)
+    assert isinstance(model, LearnerModel)
+    st = model.statistics(demos)
+    s = model.solvers[0]
+    assert st.m == 3
+    torch.testing.assert_close(st.mu_r_hat, discounted_demo_feature_sums(
+        demos, s.reward_basis, GAMMA).mean(0))
+    torch.testing.assert_close(st.cost_accrual, discounted_demo_feature_sums(
+        demos, s.cost_basis, GAMMA).mean(0))
+    sol = model.solve(0, torch.tensor([1.0, 1, 1, 1, -1], dtype=torch.float64),
+                      torch.zeros(201, dtype=torch.float64))
+    assert sol.mu_r.shape == (4,) and sol.mu_c.shape == (201,)
+    with pytest.raises(ValueError, match="no solver"):
+        model.solve(1, torch.zeros(5), torch.zeros(201))
+    with pytest.raises(ValueError, match="timesteps"):
+        SACLearnerModel(solvers=[make_solver()], timesteps=-1)
+    with pytest.raises(ValueError, match="non-empty list"):
+        SACLearnerModel(solvers=[], timesteps=1)
+
+
+def test_a_clone_is_independent_and_reproducible():
+    base = make_solver(3)
+    eta, wc = np.array([1.0, 1, 1, 1, -1]), np.zeros(201)
+    before = [p.clone() for p in base.model.actor.parameters()]
+    a, b = base.clone(7), base.clone(7)
+    sa, sb = a.solve(eta, wc, 60), b.solve(eta, wc, 60)
+    torch.testing.assert_close(sa.mu_c, sb.mu_c, rtol=0, atol=0)
+    for p, q in zip(a.model.actor.parameters(), b.model.actor.parameters(), strict=True):
+        torch.testing.assert_close(p, q, rtol=0, atol=0)
+    # training a clone leaves the original untouched
+    for p, q in zip(before, base.model.actor.parameters(), strict=True):
+        torch.testing.assert_close(p, q, rtol=0, atol=0)
+    assert any(not torch.equal(p, q) for p, q in zip(
+        before, a.model.actor.parameters(), strict=True))
+    c = base.clone(8).solve(eta, wc, 60)
+    assert not torch.equal(c.mu_c, sa.mu_c) or not torch.equal(c.mu_r, sa.mu_r)
+
+
+def test_the_same_trainer_drives_sac_learners_reproducibly_and_privately(demos):
+    comm = Recorder(2)
+    t = trainer(demos, 0, comm)
+    t.train(2)
+    st = t.state
+    assert torch.isfinite(st.cost_weights).all() and torch.isfinite(st.eta_bar).all()
+    assert ((st.cost_weights >= 0) & (st.cost_weights <= 1)).all()
+    # complete outer graph: consensus after every outer step
+    torch.testing.assert_close(st.cost_weights[0], st.cost_weights[1])
+    assert comm.fields <= set(ALLOWED_FIELDS)
+    # a feature every learner's own pairs accrue is never a constraint (b = 0)
+    everywhere = t.accrued.all(0)
+    assert everywhere.any() and (st.cost_weights[:, everywhere] == 0).all()
+    # ω_c moved from 0 on features the policies accrue but the pairs do not
+    assert st.cost_weights.max() > 0
+    again = trainer(demos, 0)
+    again.train(2)
+    torch.testing.assert_close(again.state.cost_weights, st.cost_weights, rtol=0, atol=0)
+    torch.testing.assert_close(again.state.eta_bar, st.eta_bar, rtol=0, atol=0)
+
+
+def test_mismatched_pair_counts_are_refused(demos):
+    base = make_solver()
+    with pytest.raises(ValueError, match="trajectory_counts says"):
+        DICRL(learner_model=SACLearnerModel(solvers=[base, base.clone(1)], timesteps=1),
+              shards=partition_drone_demonstrations(demos, [1, 2]), trajectory_counts=[2, 1],
+              communicator=SimulatedCommunicator(2),
+              inner_schedule=CompleteSchedule(n_learners=2),
+              outer_schedule=CompleteSchedule(n_learners=2))
+
+
+def test_greedy_adds_only_unaccrued_features_and_keeps_the_accepted_policy(demos):
+    class EveryConstraintHelps(SACGreedyConstraintInference):
+        # A likelihood that rises by 1 nat per constraint: every trial is accepted.
+        def mean_log_likelihood(self, solution):
+            super().mean_log_likelihood(solution)
+            return float(solution.cost_weights.sum())
+
+    g = EveryConstraintHelps(solver=make_solver(5), reward_weights=[1.0, 1, 1, 1],
+                             demonstrations=demos, penalty=5.0, timesteps=40,
+                             max_constraints=2)
+    sums = discounted_demo_feature_sums(demos, CellOccupancyCostBasis(), GAMMA)
+    assert torch.equal(g.candidates, ~(sums > 0).any(0))
+    res = g.run()
+    assert 1 <= len(res.added) <= 2 and res.constraint_mask.sum() == len(res.added)
+    assert all(g.candidates[j] for j in res.added)
+    assert res.solution.solver is g.solver  # the accepted trial's policy is the current one
+    with pytest.raises(ValueError, match="reward_weights"):
+        SACGreedyConstraintInference(solver=make_solver(), reward_weights=[1.0],
+                                     demonstrations=demos)
+
+
+def _compose(*overrides):
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base=None):
+        return compose(config_name="train", overrides=["experiment=table2_quick", *overrides])
+
+
+def test_table2_config_is_checked():
+    import train  # experiments/ is on pytest's pythonpath
+
+    train.check_config(_compose())
+    for bad, match in [("solver.timesteps=0", "solver.timesteps=0 is invalid"),
+                       ("baselines.run=[ME-greedy]", r"among \['M\(C\)E-greedy'\]"),
+                       ("comm=distributed", "not supported for the drone arena"),
+                       ("+solver.solver.ent_coeff=1", "did you mean 'ent_coef'")]:
+        with pytest.raises(train.ConfigError, match=match):
+            train.check_config(_compose(bad))
+
+
+TINY = ["experiment=table2_quick", "env.arena.max_steps=20", "eval_episodes=2",
+        "solver.warmup_timesteps=60", "solver.timesteps=20", "solver.n_eval_episodes=1",
+        "solver.solver.learning_starts=30", "solver.solver.batch_size=16",
+        "solver.solver.net_arch=[16,16]", "algo.outer_iterations=1", "algo.inner_steps=2",
+        "baselines.timesteps=20", "baselines.max_constraints=1", "logger=none"]
+
+
+def test_table2_entry_point_end_to_end(tmp_path):
+    out = subprocess.run([sys.executable, str(ROOT / "experiments" / "train.py"),
+                          f"hydra.run.dir={tmp_path}", *TINY], capture_output=True, text=True,
+                         cwd=ROOT, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    res = json.loads((tmp_path / "results.json").read_text())
+    methods = res["methods"]
+    assert list(methods) == ["D-ICRL", "C-ICRL", "M(C)E-greedy", "Experts (ground truth)"]
+    assert len(methods["D-ICRL"]["learners"]) == 2
+    for name in ("D-ICRL", "C-ICRL", "M(C)E-greedy"):
+        for row in methods[name]["learners"]:
+            assert 0 <= row["SR"] <= 1 and 0 <= row["CVR"] <= 1
+            assert row["CR_mean"] is None and row["RFD"] is None
+            assert 0 <= row["FPR"] <= 1 and 0 <= row["FNR"] <= 1
+    assert "SR" in out.stdout and "D-ICRL 2" in out.stdout
+    assert (tmp_path / "fig3b_demonstrations.png").exists()
+    assert (tmp_path / "fig3c_d-icrl_learner_1.png").exists()
