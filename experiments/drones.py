@@ -149,6 +149,7 @@ def run_icrl(name: str, trainer: DICRL, cfg, p: DroneProblem, logger, run_of,
              out: Path) -> list[dict]:
     """Train, then the table rows (and figures) of the trainer's learners."""
     a = cfg.algo
+    trainer.logger, trainer.run_name = logger, run_of  # its inner/ scalars
     trainer.train(a.outer_iterations, callback=lambda t, info: log_outer(
         logger, run_of, t, info, p, a.threshold))
     rows = []

@@ -726,6 +726,8 @@ def train(name: str, trainer: DICRL, ckpt: Checkpoints, logger, run_of: RunOf, c
         Interrupted: ``stop`` caught a signal; the last outer iteration is checkpointed.
     """
     a = cfg.algo
+    # The trainer logs its inner/ scalars itself (each learner's own inner process).
+    trainer.logger, trainer.run_name = logger, run_of
 
     def after_outer(t: DICRL, info: dict) -> None:
         # Into the history entry (info is trainer.history[-1]), before the checkpoint that

@@ -115,6 +115,17 @@ def test_train_runs_end_to_end(tmp_path):
         assert key in res["methods"]["D-ICRL"]["learners"][0]
     assert (tmp_path / "tb" / "learner0").is_dir() and (tmp_path / "tb" / "network").is_dir()
     assert "FPR" in out.stdout and str(tmp_path) in out.stdout
+    # every learner's run has the same outer/, inner/ and eval/ tags (DESIGN: TensorBoard)
+    from tb_snapshot import read_scalars
+
+    scalars = read_scalars(tmp_path)
+    runs_of = {tag: set(runs) for tag, runs in scalars.items()}
+    for prefix in ("outer/", "inner/", "eval/"):
+        tags = [t for t in runs_of if t.startswith(prefix)]
+        assert tags, prefix
+        for tag in tags:
+            assert {"learner0", "learner1"} <= runs_of[tag], tag
+    assert "network" in runs_of["consensus/max_pairwise_cost_distance"]
 
 
 TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
