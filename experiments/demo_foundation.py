@@ -17,6 +17,7 @@ from pathlib import Path
 import hydra
 import numpy as np
 import torch
+from common import build
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig
@@ -26,12 +27,6 @@ from dicrl_torch.demos import partition_demonstrations, save_demonstrations
 from dicrl_torch.demos.experts import expert_solution, local_estimates, sample_trajectories
 from dicrl_torch.envs.gridworld_env import render_grid
 from dicrl_torch.metrics import rollout_true_cmg
-
-
-def build(cfg: DictConfig, **objects):
-    """Instantiate ``cfg`` with built objects as keyword arguments (Hydra would try to
-    merge them into the config otherwise)."""
-    return instantiate(cfg, _partial_=True)(**objects)
 
 
 def visitation(states: np.ndarray, n_cells: int) -> np.ndarray:
