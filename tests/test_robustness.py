@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import fractions
-import importlib.util
 import json
 import os
 import shlex
@@ -43,17 +42,7 @@ TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
         "n_demonstrations=10", "split=[4,6]", "logger=none"]
 
 
-def load_entry_point():
-    """experiments/train.py as a module (it is a script, not part of the package)."""
-    spec = importlib.util.spec_from_file_location("dicrl_train_entry",
-                                                  ROOT / "experiments" / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
-entry = load_entry_point()
+import train as entry  # noqa: E402 - experiments/train.py (pytest pythonpath)
 
 
 def compose_train(*overrides: str):

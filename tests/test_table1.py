@@ -3,7 +3,6 @@ end-to-end run with the ME-greedy / MCE-greedy rows in the paper's row order."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -25,15 +24,6 @@ PAPER_ORDER = ["D-ICRL", "C-ICRL", "ME-greedy", "MCE-greedy", "Experts (ground t
 def compose_train(*overrides: str):
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         return compose(config_name="train", overrides=list(overrides))
-
-
-def load_entry_point():
-    spec = importlib.util.spec_from_file_location("dicrl_train_entry_table1",
-                                                  ROOT / "experiments" / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.parametrize("experiment,n_experts", [("table1", 3), ("table1_small", 2)])
@@ -60,7 +50,7 @@ def test_make_run_has_no_baselines():
                                       "baselines.run=[ME-greedy,ME-greedy]",
                                       "baselines.run=ME-greedy", "+baselines.eps=0.1"])
 def test_bad_baselines_are_refused(override):
-    entry = load_entry_point()
+    import train as entry  # experiments/train.py (pytest pythonpath)
     with pytest.raises(entry.ConfigError, match="baselines"):
         entry.check_config(compose_train(override))
 

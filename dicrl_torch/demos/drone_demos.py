@@ -39,6 +39,7 @@ from dicrl_torch.demos.npz import (
     read_field,
     read_scalar,
     shard_indices,
+    subset_indices,
 )
 from dicrl_torch.envs.drones import (
     AGENTS,
@@ -242,18 +243,9 @@ class DroneDemonstrations:
         return np.minimum(first, self.lengths[:, None]).astype(np.int64)
 
     def subset(self, indices: ArrayLike) -> DroneDemonstrations:
-        """The pairs at ``indices`` (1-D ints, in that order) as new demonstrations."""
-        idx = np.asarray(indices)
-        if idx.ndim != 1 or not (idx.size == 0 or np.issubdtype(idx.dtype, np.integer)):
-            raise ValueError(
-                f"subset indices must be a 1-D sequence of ints, got dtype {idx.dtype} "
-                f"shape {idx.shape}."
-            )
-        if idx.size and (idx.min() < -self.n_pairs or idx.max() >= self.n_pairs):
-            raise ValueError(
-                f"subset indices must lie in [0, {self.n_pairs}), got [{idx.min()}, "
-                f"{idx.max()}]."
-            )
+        """The pairs at ``indices`` (1-D ints, in that order, or a ``[m]`` bool mask) as
+        new demonstrations."""
+        idx = subset_indices(indices, self.n_pairs)
         return DroneDemonstrations(
             states=self.states[idx], actions=self.actions[idx], lengths=self.lengths[idx],
             dt=self.dt, seeds=None if self.seeds is None else self.seeds[idx],

@@ -146,6 +146,23 @@ def check_expected(source: str, found: Mapping[str, object],
                 f"the demonstrations for this configuration or point to the matching file.")
 
 
+def subset_indices(indices, n: int) -> np.ndarray:
+    """Validated int64 indices ``[k]`` into ``n`` trajectories (or pairs), from 1-D ints
+    (in that order; negative ones count from the end) or a ``[n]`` bool mask."""
+    idx = np.asarray(indices)
+    if idx.dtype == np.bool_:
+        if idx.shape != (n,):
+            raise ValueError(f"A boolean subset mask must have shape ({n},), got {idx.shape}.")
+        idx = np.flatnonzero(idx)
+    if idx.ndim != 1 or not (idx.size == 0 or np.issubdtype(idx.dtype, np.integer)):
+        raise ValueError(f"subset indices must be a 1-D sequence of ints, got dtype "
+                         f"{idx.dtype} shape {idx.shape}.")
+    if idx.size and (idx.min() < -n or idx.max() >= n):
+        raise ValueError(f"subset indices must lie in [0, {n}), got [{idx.min()}, "
+                         f"{idx.max()}].")
+    return idx.astype(np.int64)
+
+
 def shard_indices(m: int, sizes: Sequence[int], rng: np.random.Generator | None,
                   unit: str) -> list[np.ndarray]:
     """Indices of consecutive, disjoint shards of ``m`` items (shuffled first when

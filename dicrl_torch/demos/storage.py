@@ -24,6 +24,7 @@ from dicrl_torch.demos.npz import (
     open_archive,
     read_field,
     read_scalar,
+    subset_indices,
 )
 
 FORMAT_VERSION = 1
@@ -164,25 +165,7 @@ class Demonstrations:
     def subset(self, indices: ArrayLike) -> Demonstrations:
         """The trajectories at ``indices`` (1-D ints, in that order, or a ``[m]`` bool
         mask) as new demonstrations."""
-        idx = np.asarray(indices)
-        if idx.dtype == np.bool_:
-            if idx.shape != (self.n_trajectories,):
-                raise ValueError(
-                    f"A boolean subset mask must have shape ({self.n_trajectories},), got "
-                    f"{idx.shape}."
-                )
-            idx = np.flatnonzero(idx)
-        if idx.ndim != 1 or not (idx.size == 0 or np.issubdtype(idx.dtype, np.integer)):
-            raise ValueError(
-                f"subset indices must be a 1-D sequence of ints, got dtype {idx.dtype} "
-                f"shape {idx.shape}."
-            )
-        if idx.size and (idx.min() < -self.n_trajectories or idx.max() >= self.n_trajectories):
-            raise ValueError(
-                f"subset indices must lie in [0, {self.n_trajectories}), got "
-                f"[{idx.min()}, {idx.max()}]."
-            )
-        idx = idx.astype(np.int64)
+        idx = subset_indices(indices, self.n_trajectories)
         return Demonstrations(
             states=self.states[idx], actions=self.actions[idx],
             n_cells=self.n_cells, n_actions=self.n_actions,
