@@ -9,7 +9,7 @@ import matplotlib.image
 import numpy as np
 import pytest
 from test_configs import run_train  # the tiny end-to-end run (TINY: 2 learners)
-from test_table1 import compose_train, load_entry_point
+from test_table1 import compose_train
 from tiny_dicrl import build_tiny
 
 from dicrl_torch.demos.experts import sample_trajectories
@@ -176,7 +176,7 @@ def test_metric_curves_refuses_bad_histories():
 
 # ---------------------------------------------------------------------- train.py
 def test_eval_every_is_checked():
-    entry = load_entry_point()
+    import train as entry  # experiments/train.py (pytest pythonpath)
     with pytest.raises(entry.ConfigError, match="eval_every=0 is invalid"):
         entry.check_config(compose_train("eval_every=0"))
     entry.check_config(compose_train("eval_every=1"))
