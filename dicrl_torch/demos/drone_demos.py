@@ -2,13 +2,14 @@
 partitioning.
 
 The experts are a planner, imperfect and human-like like the paper's hand-flown
-Gazebo pairs. For each pair it draws via-points at random (from an explicit
-``np.random.Generator``) inside boxes that route each drone through the central gap and
-around its side of the centre block, checks that the piecewise-linear path keeps a
-clearance from obstacles and walls, and gives each drone a random cruise speed. One
-drone, drawn at random, yields: it hovers at its first via-point, below the gap, until
-the other has crossed, for the shortest wait (plus a random hesitation) that keeps the
-planned drones ``SAFE_SEPARATION`` apart. A feed-forward plus proportional velocity
+Gazebo pairs. For each pair it draws, per drone, the side on which the drone passes the
+central block and then via-points at random (from an explicit ``np.random.Generator``)
+inside boxes along that side, checks that the piecewise-linear path keeps a clearance
+from obstacles and walls, and gives each drone a random cruise speed. Detours on both
+sides put the pairs over every free cell that a straight route to the door crosses, so
+only the block's cells are avoided by all pairs. One drone, drawn at random, yields: it
+hovers at its first via-point until the other has passed, for the shortest wait (plus a
+random hesitation) that keeps the planned drones ``SAFE_SEPARATION`` apart. A feed-forward plus proportional velocity
 controller tracks the timed paths in the *true* game (:class:`DroneArena` with its
 noise); only pairs in which both drones reach their doors with no violation are kept.
 
@@ -73,15 +74,30 @@ HESITATION: tuple[float, float] = (0.0, 1.0)
 """Range of the extra wait (s) of the yielding drone, on top of the shortest safe one."""
 KP: float = 1.5
 """Proportional gain (1/s) of the tracking controller."""
-VIA_BOXES: tuple[tuple[tuple[float, float], tuple[float, float]], ...] = (
-    ((3.7, 4.5), (2.6, 3.4)),  # below the gap, left part: the yielding drone hovers here
-    ((6.3, 6.7), (5.35, 5.65)),  # above the gap, to the right of the centre block
-    ((6.8, 7.4), (6.6, 7.6)),  # beside the centre block's right side
-    ((8.4, 9.1), (8.6, 9.2)),  # below the door
-)
-"""``((x_lo, x_hi), (y_lo, y_hi))`` boxes of drone 0's via-points, in path order; drone 1
-uses their mirror image ``x -> ROOM_SIZE - x``. The path ends above the last one, at
-``y = ROOM_SIZE - 0.05``, inside the door's mouth."""
+Box = tuple[tuple[float, float], tuple[float, float]]
+VIA_BOXES: dict[str, tuple[Box, ...]] = {
+    # Pass the block on the side of the own door, crossing the other drone below it.
+    "far": (
+        ((2.3, 3.0), (2.2, 3.0)),    # on the straight route: the yielding drone hovers here
+        ((4.0, 4.6), (4.3, 4.6)),    # under the block's near half
+        ((6.4, 6.7), (4.3, 4.6)),    # beyond its lower far corner
+        ((6.4, 6.7), (6.4, 6.7)),    # beyond its upper far corner
+        ((7.6, 8.4), (8.9, 9.3)),    # below the door, left of its centre
+    ),
+    # Pass the block on the side of the own start, crossing the other drone above it.
+    "near": (
+        ((1.9, 2.6), (2.2, 3.0)),    # the yielding drone hovers here
+        ((3.3, 3.6), (5.0, 5.6)),    # beside the block's near side
+        ((3.3, 3.6), (6.4, 6.6)),    # beyond its upper near corner
+        ((4.8, 5.6), (6.4, 6.7)),    # above the block
+        ((7.6, 8.4), (8.9, 9.3)),    # below the door, left of its centre
+    ),
+}
+"""``((x_lo, x_hi), (y_lo, y_hi))`` boxes of drone 0's via-points, in path order, for
+each side of the central block; drone 1 uses their mirror image ``x -> ROOM_SIZE - x``.
+The path ends at ``y = ROOM_SIZE - 0.05`` above the last one, moved at least
+``DOOR_MARGIN`` inside the door's span."""
+DOOR_MARGIN: float = 0.3
 _HOLD_WAYPOINT = 1  # index in the waypoint list (0 is the start): the first via-point
 _MAX_WAIT_S = 12.0
 _WAIT_STEP_S = 0.25
@@ -424,9 +440,12 @@ def path_clearance(waypoints: np.ndarray, drone: int, step: float = 0.05) -> flo
 
 
 def _sample_route(drone: int, start: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """``[6, 2]`` waypoints: start, 4 random via-points, the door; mirrored for drone 1."""
-    via = np.array([[rng.uniform(*bx), rng.uniform(*by)] for bx, by in VIA_BOXES])
-    end = np.array([[via[-1, 0], ROOM_SIZE - 0.05]])
+    """``[7, 2]`` waypoints: start, 5 random via-points on a random side of the central
+    block, the door; mirrored for drone 1."""
+    side = ("far", "near")[int(rng.integers(2))]
+    via = np.array([[rng.uniform(*bx), rng.uniform(*by)] for bx, by in VIA_BOXES[side]])
+    lo, hi = DOORS[0]
+    end = np.array([[np.clip(via[-1, 0], lo + DOOR_MARGIN, hi - DOOR_MARGIN), ROOM_SIZE - 0.05]])
     pts = np.concatenate([via, end])
     if drone == 1:
         pts[:, 0] = ROOM_SIZE - pts[:, 0]

@@ -4,21 +4,24 @@ Geometry (metres, ``x`` to the right, ``y`` up, origin at the bottom-left corner
 
     y=10 ─┬──door 1──┬───────────────────────────┬──door 0──┬─  (doors in the top wall)
           │ 0.5   2.0                             8.0    9.5 │
-      8   │                ┌─────────┐                      │
-          │                │ centre  │                      │
-      6   │                └─────────┘                      │
-      5   │   ┌───────┐       gap        ┌───────┐          │
-      4   │   └─ left ┘                  └ right ┘          │
           │                                                 │
+      6   │                 ┌───────────┐                   │
+          │                 │  central  │  <- both straight │
+      5   │                 └───────────┘     routes cross  │
+          │                                   here          │
       1   │  d0 start (1, 1)                 d1 start (9, 1)│
       0   └─────────────────────────────────────────────────┘
-          0   1       3     4       6    7       9          10
+          0   1             4           6                  10
 
 ``drone_0`` starts near the bottom-left corner and leaves through the door near the
-top-right corner; ``drone_1`` mirrors it. Both routes pass through the gap between the
-two wing walls, so the paths cross in the middle, and then around the centre block on
-opposite sides. All obstacles are aligned to the 1 m grid so that "cells overlapping an
-obstacle" (the true cost constraints of the cell basis) are exactly the cells inside one.
+top-right corner; ``drone_1`` mirrors it, so their straight routes cross in the middle.
+The obstacle, a 2 m x 1 m block, sits exactly where both straight routes cross: the
+straight route of either drone from its (jittered) start to its door's centre crosses
+both of its cells. That is what makes its cells learnable from demonstrations. ICRL learns a cell as a constraint
+only when the unconstrained policy would enter it and the experts do not; an obstacle
+that no reward-seeking route approaches leaves no trace in any demonstration. The
+block is aligned to the 1 m grid, so "cells overlapping an obstacle" (the true cost
+constraints of the cell basis) are exactly the cells inside it.
 
 Dynamics of each drone (fixed altitude, planar): the action is a velocity command
 ``u ∈ [-1, 1]^2`` (times ``max_speed``), tracked with a first-order response plus
@@ -64,9 +67,7 @@ GRID_CELLS: int = 10
 CELL_SIZE: float = ROOM_SIZE / GRID_CELLS
 
 OBSTACLES: tuple[tuple[float, float, float, float], ...] = (
-    (1.0, 4.0, 3.0, 5.0),  # left wing wall
-    (7.0, 4.0, 9.0, 5.0),  # right wing wall
-    (4.0, 6.0, 6.0, 8.0),  # centre block above the crossing
+    (4.0, 5.0, 6.0, 6.0),  # the central block, where the straight routes cross
 )
 """Axis-aligned obstacle boxes ``(x_lo, y_lo, x_hi, y_hi)``; a drone inside one violates."""
 
