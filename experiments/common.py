@@ -3,6 +3,8 @@ result files, the logger and the results table (DESIGN §8)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -39,8 +41,7 @@ def trainer_settings(cfg, n_learners: int) -> dict[str, Any]:
     # learner with all m trajectories takes the same step on G with α / N_L.
     steps = instantiate(a.steps)
     scale = n_learners / len(cfg.split)
-    steps = type(steps)(alpha_bar=steps.alpha_bar * scale, beta_bar=steps.beta_bar,
-                        beta_power=steps.beta_power)
+    steps = dataclasses.replace(steps, alpha_bar=steps.alpha_bar * scale)
     return dict(inner_schedule=graph["inner"], outer_schedule=graph["outer"], steps=steps,
                 inner_steps=a.inner_steps, lsca_curvature=a.lsca_curvature,
                 prune_accrued=a.prune_accrued, init_cost_weights=a.init_cost_weights,

@@ -139,6 +139,8 @@ VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
      "a positive number (the constant step of inner_method=gradient_tracking)", "0.005"),
     ("algo.steps.alpha_bar", float, _in_open(0.0, math.inf),
      "a positive number (α(k) = ᾱ/(k+1))", "0.02"),
+    ("algo.steps.multiplier_scale", float, _in_open(0.0, math.inf),
+     "a positive number (the λ coordinate's step is scaled by it; 1: the paper's)", "1.0"),
     ("algo.steps.beta_bar", float, _in_open(0.0, 1.0),
      "a number in (0, 1) so that β(n) ∈ (0, 1) (Theorem 1)", "0.5"),
     ("algo.steps.beta_power", float, lambda x: 0.5 < x <= 1,

@@ -124,6 +124,27 @@ def test_bad_configurations_are_refused_before_computing(setup):
         StepSizes(beta_bar=1.5)
     with pytest.raises(ValueError, match="alpha_bar"):
         StepSizes(alpha_bar=-1.0)
+    with pytest.raises(ValueError, match="multiplier_scale"):
+        StepSizes(multiplier_scale=0.0)
+
+
+def test_multiplier_scale_scales_only_the_multiplier_step(setup):
+    """One inner step (K = 2) from the same η: with ``multiplier_scale = 3`` the ω_r
+    coordinates move exactly as with 1 and λ moves exactly 3 times as far from the
+    consensus point."""
+    paper = make(setup, inner_steps=2)
+    scaled = make(setup, inner_steps=2,
+                  steps=StepSizes(alpha_bar=0.02, multiplier_scale=3.0))
+    cost = torch.full(paper.state.cost_weights.shape[1:], 0.3, dtype=torch.float64)
+    eta0 = torch.randn(paper.state.eta_bar.shape, generator=torch.Generator().manual_seed(0),
+                       dtype=torch.float64)
+    _, eta_paper = paper.inner_process(cost, eta0)
+    _, eta_scaled = scaled.inner_process(cost, eta0)
+    mixed = paper.comm.mix(eta0, paper.inner_schedule(0), "eta")
+    torch.testing.assert_close(eta_scaled[:, :-1], eta_paper[:, :-1], rtol=0, atol=0)
+    assert torch.all((eta_paper[:, -1] - mixed[:, -1]).abs() > 1e-6)
+    torch.testing.assert_close(eta_scaled[:, -1] - mixed[:, -1],
+                               3.0 * (eta_paper[:, -1] - mixed[:, -1]), rtol=1e-12, atol=0)
 
 
 def test_pruning_keeps_exactly_the_constraints_the_likelihood_needs(setup):

@@ -38,11 +38,11 @@ def make_trainer(tiny, *, shards=None, communicator=None, init_cost=None, inner=
     if init_cost is None:
         init_cost = torch.linspace(0.2, 0.4, n, dtype=torch.float64).unsqueeze(1).expand(
             n, cb.dim).clone()
+    settings = dict(steps=StepSizes(alpha_bar=0.02), inner_steps=3, lsca_curvature=10.0)
     return DICRL(solver=solver, reward_basis=rb, cost_basis=cb,
                  shards=all_shards if shards is None else shards,
                  trajectory_counts=SPLIT,
                  communicator=communicator or SimulatedCommunicator(n),
                  inner_schedule=inner or TimeVaryingSchedule(n_learners=n, period=2),
                  outer_schedule=CompleteSchedule(n_learners=n),
-                 steps=StepSizes(alpha_bar=0.02), inner_steps=3, lsca_curvature=10.0,
-                 init_cost_weights=init_cost, **kw)
+                 init_cost_weights=init_cost, **(settings | kw))

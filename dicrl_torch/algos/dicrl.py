@@ -59,15 +59,25 @@ class NonFiniteError(FloatingPointError):
 @dataclass(frozen=True)
 class StepSizes:
     """``α(k) = alpha_bar / (k + 1)`` (inner) and ``β(n) = beta_bar / (n + 1)^beta_power``
-    (outer; ``Σβ = ∞`` and ``Σβ² < ∞`` need ``beta_power ∈ (1/2, 1]``)."""
+    (outer; ``Σβ = ∞`` and ``Σβ² < ∞`` need ``beta_power ∈ (1/2, 1]``).
+
+    ``multiplier_scale`` multiplies the λ coordinate of every inner step: a constant
+    diagonal preconditioner, i.e. the same gradient method on ``λ / sqrt(scale)``. It
+    matters when ``μ_r`` and ``J_ωc`` live on very different scales (the drones: μ_r is
+    tens per feature, J a few units), where one α either overshoots ω_r or starves λ.
+    """
 
     alpha_bar: float = 0.05
     beta_bar: float = 0.5
     beta_power: float = 0.6
+    multiplier_scale: float = 1.0
 
     def __post_init__(self) -> None:
         if not (self.alpha_bar > 0 and math.isfinite(self.alpha_bar)):
             raise ValueError(f"alpha_bar must be a positive number, got {self.alpha_bar}.")
+        if not (self.multiplier_scale > 0 and math.isfinite(self.multiplier_scale)):
+            raise ValueError(f"multiplier_scale must be a positive number (1: the paper's "
+                             f"step), got {self.multiplier_scale}.")
         if not 0 < self.beta_bar < 1:
             raise ValueError(f"beta_bar must lie in (0, 1) so that β(n) ∈ (0, 1) "
                              f"(Theorem 1), got {self.beta_bar}.")
@@ -273,7 +283,9 @@ class DICRL:
                 self.logger.scalar(run, "inner/multiplier", float(eta[i, -1]), step)
                 self.logger.scalar(run, "inner/reward_weight_norm", float(eta[i, :-1].norm()),
                                    step)
-        return self.m[:, None] * grads
+        scaled = self.m[:, None] * grads
+        scaled[:, -1] *= self.steps.multiplier_scale
+        return scaled
 
     def inner_process(self, cost_weights: torch.Tensor, eta0: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor]:
