@@ -167,11 +167,11 @@ def _start(seed: int) -> np.ndarray:
 
 def test_first_order_response_reaches_command():
     dyn = DroneDynamics(noise_std=0.0)
-    pos, vel = np.zeros(2), np.zeros(2)
+    pos, vel = np.full(2, 5.0), np.zeros(2)  # the middle of the room: no wall in reach
     u = np.array([0.6, -0.3])
     p1, v1 = dyn.step(pos, vel, u)
     np.testing.assert_allclose(v1, dyn.dt / dyn.tau * u * dyn.max_speed)
-    np.testing.assert_allclose(p1, dyn.dt * v1)
+    np.testing.assert_allclose(p1, pos + dyn.dt * v1)
     for _ in range(40):  # 4 s = 13 time constants
         pos, vel = dyn.step(pos, vel, u)
     np.testing.assert_allclose(vel, u * dyn.max_speed, atol=1e-5)
@@ -245,14 +245,18 @@ def test_obstacle_violation_freezes_only_in_true_game(constrained):
 
 
 @pytest.mark.parametrize("constrained", [True, False])
-def test_leaving_the_room_and_doors(constrained):
-    # drone 0 leaves through the left wall; drone 1 through drone 0's door: violations.
+def test_walls_stop_drones_and_only_the_own_door_lets_one_out(constrained):
+    # drone 0 pushes into the left wall; drone 1 into the top wall at drone 0's door:
+    # the walls stop both (position on the wall, velocity into it 0), no violation.
     env = arena([[0.3, 2.0], [8.75, 9.2]], constrained=constrained)
     infos = fly(env, {D0: (-1.0, 0.0), D1: (0.0, 1.0)}, 10)
-    assert any(i.get(D0, {}).get("out_of_room") for i in infos)
-    assert any(i.get(D1, {}).get("out_of_room") for i in infos)
-    assert not env.reached.any()
-    assert (D0 in env.agents) == (not constrained)
+    assert not any(i[a]["violated"] for i in infos for a in (D0, D1))
+    state = env.state()
+    assert state[0, 0] == 0.0 and state[0, 2] == 0.0 and state[0, 1] == pytest.approx(2.0, abs=0.2)
+    assert state[1, 1] == ROOM_SIZE and state[1, 3] == 0.0
+    assert not env.reached.any() and env.agents == [D0, D1]
+    fly(env, {D0: (1.0, 0.0)}, 5)  # and leaves the wall again
+    assert env.state()[0, 0] > 0.1
     # drone 0 through its own door: success, reward 1, done in both games.
     env = arena([[8.75, 9.0], [1.25, 5.5]], constrained=constrained)
     rewards = []

@@ -28,13 +28,15 @@ Dynamics of each drone (fixed altitude, planar): the action is a velocity comman
 Gaussian noise drawn from the env's seeded generator::
 
     v' = clip(v + (dt / tau) (max_speed * u - v) + noise, ±vel_limit)
-    p' = clip(p + dt * v', world box)
+    p' = clip(p + dt * v', room);  v' = 0 along an axis on which a wall stopped it
 
-True constraints (violations): being inside an obstacle box, being outside the room
-unless in the own door's mouth, and the two active drones closer than
+The walls are part of the dynamics, known to every learner like the grid world's edge
+(a move off the grid stays): a drone pushing into a wall stops against it. The true
+constraints (violations) are exactly what the cost features describe (DESIGN §7):
+being inside an obstacle box, and the two active drones closer than
 ``proximity_radius`` (a collision; both violate). A drone whose position enters the
-mouth of its own door (the door's span, the top ``DOOR_DEPTH`` metres of the room and
-beyond) has reached it: it is done (success) and leaves the arena. In the true game
+mouth of its own door (the door's span, the top ``DOOR_DEPTH`` metres of the room) has
+reached it: it is done (success) and leaves the arena through the door. In the true game
 (``constrained=True``) a violator freezes: it stops, is terminated and removed from the
 arena, like the grid world. In the nominal game violations are only reported.
 
@@ -84,9 +86,6 @@ START_JITTER: float = 0.25
 
 PROXIMITY_RADIUS: float = 0.5
 """Two active drones closer than this (metres) collide."""
-WORLD_MARGIN: float = 1.0
-"""The simulated world ends this far beyond the walls; positions are clamped to it so
-that drones of the nominal game, which may leave the room, keep bounded observations."""
 
 AGENTS: tuple[str, ...] = ("drone_0", "drone_1")
 N_DRONES: int = len(AGENTS)
@@ -239,14 +238,17 @@ class DroneDynamics:
                 ``noise_std * rng.standard_normal(...)``; None for none.
 
         Returns:
-            ``(pos', vel')``, each ``[..., 2]``; positions clamped to the world box.
+            ``(pos', vel')``, each ``[..., 2]``; a wall stops a drone: its position is
+            clamped to the room and its velocity along that axis set to 0.
         """
         u = _clip(command, -1.0, 1.0) * self.max_speed
         vel = vel + (self.dt / self.tau) * (u - vel)
         if noise is not None:
             vel = vel + noise
         vel = _clip(vel, -self.vel_limit, self.vel_limit)
-        pos = _clip(pos + self.dt * vel, -WORLD_MARGIN, ROOM_SIZE + WORLD_MARGIN)
+        free = pos + self.dt * vel
+        pos = _clip(free, 0.0, ROOM_SIZE)
+        vel = _where(pos == free, vel, vel * 0.0)
         return pos, vel
 
     def sample_noise(self, rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
@@ -266,7 +268,6 @@ class JointStep:
             (in the true game only without a violation).
         collision: ``[...]`` bool, the two active drones came too close.
         in_obstacle: ``[..., N]`` bool, an active drone is inside an obstacle.
-        out_of_room: ``[..., N]`` bool, an active drone left the room, not via its door.
     """
 
     state: Any
@@ -275,7 +276,6 @@ class JointStep:
     reached: Any
     collision: Any
     in_obstacle: Any
-    out_of_room: Any
 
 
 def joint_step(
@@ -312,9 +312,8 @@ def joint_step(
     new_vel = _where(keep, new_vel, vel)
     at_door = in_own_door(new_pos) & active
     obstacle = in_obstacle(new_pos) & active
-    out = outside_room(new_pos) & ~at_door & active
     collision = too_close(new_pos, proximity_radius) & active[..., 0] & active[..., 1]
-    violated = obstacle | out | collision[..., None]
+    violated = obstacle | collision[..., None]
     if constrained:
         reached = at_door & ~violated
         stop = violated | at_door
@@ -324,7 +323,7 @@ def joint_step(
     new_vel = _where(stop[..., None], new_vel * 0.0, new_vel)
     return JointStep(
         state=_cat([new_pos, new_vel]), active=active & ~stop, violated=violated,
-        reached=reached, collision=collision, in_obstacle=obstacle, out_of_room=out,
+        reached=reached, collision=collision, in_obstacle=obstacle,
     )
 
 
@@ -338,7 +337,7 @@ class DroneArena(ParallelEnv):
     without a violation, else 0 (the learner brings its own reward; DESIGN §7).
 
     ``infos[agent]`` has ``violated``, ``reached``, ``collision`` (this step),
-    ``in_obstacle``, ``out_of_room`` and ``position`` (``[2]`` float64). An agent leaves
+    ``in_obstacle`` and ``position`` (``[2]`` float64). An agent leaves
     ``agents`` (terminated) when it reaches its door or, in the true game, violates; all
     are truncated after ``max_steps``. The random stream (start jitter, noise) depends
     only on the seed: every step draws noise for both drones, flying or not.
@@ -391,7 +390,7 @@ class DroneArena(ParallelEnv):
         self.possible_agents = list(AGENTS)
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
         v = dynamics.vel_limit
-        lo, hi = -WORLD_MARGIN, ROOM_SIZE + WORLD_MARGIN
+        lo, hi = 0.0, ROOM_SIZE
         self._obs_low = np.array([lo, lo, -v, -v] * 2 + [0.0, 0.0], dtype=np.float32)
         self._obs_high = np.array([hi, hi, v, v] * 2 + [ROOM_SIZE] * 2, dtype=np.float32)
         self.state_space = spaces.Box(
@@ -443,7 +442,7 @@ class DroneArena(ParallelEnv):
         self._history = [pos.copy()]
         self.agents = list(self.possible_agents)
         obs = {a: self.observe(a) for a in self.agents}
-        infos = {a: self._info(i, False, False, False, False, False)
+        infos = {a: self._info(i, False, False, False, False)
                  for a, i in self._index.items()}
         return obs, infos
 
@@ -473,8 +472,7 @@ class DroneArena(ParallelEnv):
             terms[a] = not bool(res.active[i])
             truncs[a] = not terms[a] and self.timestep >= self.max_steps
             infos[a] = self._info(i, bool(res.violated[i]), bool(res.reached[i]),
-                                  bool(res.collision), bool(res.in_obstacle[i]),
-                                  bool(res.out_of_room[i]))
+                                  bool(res.collision), bool(res.in_obstacle[i]))
         self.agents = [a for a in live if not (terms[a] or truncs[a])]
         return obs, rewards, terms, truncs, infos
 
@@ -529,10 +527,9 @@ class DroneArena(ParallelEnv):
 
     # ---- helpers ------------------------------------------------------------------
     def _info(self, i: int, violated: bool, reached: bool, collision: bool,
-              obstacle: bool, out: bool) -> dict[str, Any]:
+              obstacle: bool) -> dict[str, Any]:
         return {"violated": violated, "reached": reached, "collision": collision,
-                "in_obstacle": obstacle, "out_of_room": out,
-                "position": self._state[i, :2].copy()}
+                "in_obstacle": obstacle, "position": self._state[i, :2].copy()}
 
     def _agent_index(self, agent: str) -> int:
         try:
@@ -605,7 +602,7 @@ class JointDroneEnv(gym.Env):
     part is ignored). Reward: ``reward_fn(obs, action, next_obs)`` or 0. Terminated
     when no drone flies any more (all arrived or frozen); truncated at ``max_steps``.
     ``info`` holds per-drone ``[2]`` bool arrays ``violated``, ``reached``, ``active``,
-    ``in_obstacle``, ``out_of_room``, the bool ``collision`` and the ``[2, 4]`` float64
+    ``in_obstacle``, the bool ``collision`` and the ``[2, 4]`` float64
     ``state``.
 
     Args:
@@ -643,7 +640,7 @@ class JointDroneEnv(gym.Env):
             return np.array([bool(infos.get(a, {}).get(key, False)) for a in AGENTS])
 
         return {"violated": per("violated"), "reached": per("reached"),
-                "in_obstacle": per("in_obstacle"), "out_of_room": per("out_of_room"),
+                "in_obstacle": per("in_obstacle"),
                 "collision": bool(per("collision").any()), "active": self.arena.active,
                 "state": self.arena.state()}
 
