@@ -10,8 +10,10 @@ learner). The steps:
 2. One SAC solver is pre-trained on ``η(0), ω_c(0)`` (``solver.warmup_timesteps``);
    every learner, and C-ICRL, starts from a clone of it (all start from the same
    ``η(0)``), so the warm-up is paid once.
-3. D-ICRL (and C-ICRL: one learner, all pairs); each learner's final policy is rolled
-   out ``eval_episodes`` times in the TRUE game (violators freeze): SR and CVR.
+3. D-ICRL (and C-ICRL: one learner, all pairs). A last solve of
+   ``solver.final_timesteps`` on each learner's learned ``(η̄, ω_c)`` gives its policy,
+   rolled out ``eval_episodes`` times in the TRUE game (violators freeze) with mean and
+   with sampled actions: SR and CVR.
 4. M(C)E-greedy given the reward learned by D-ICRL (learner 1's ``ω_r``), as in the
    paper (the arena's noise is small, so ME and MCE coincide: one row).
 5. ``results.json``, the table in the paper's layout, Fig. 3b/3c analogues (PNG and
@@ -121,11 +123,22 @@ def log_outer(logger, run_of, trainer: DICRL, info: dict, p: DroneProblem,
 
 def evaluate_true_game(solver: SACConstrainedSolver, cfg) -> tuple[dict, list[np.ndarray]]:
     """SR and CVR of the solver's current policy in the TRUE game, on common random
-    numbers (the same episode seeds for every row)."""
-    ev = solver.evaluate(int(cfg.eval_episodes), true_game=True, trajectories=True,
-                         rng=np.random.default_rng(derived_seed(cfg.seed, 3)))
-    return {"CR_mean": None, "CR_std": None, "RFD": None, "SR": ev.success_rate,
-            "CVR": ev.violation_rate}, ev.paths
+    numbers (the same episode seeds for every row and both action modes).
+
+    The table's SR and CVR use ``solver.eval_action``: ``mean`` flies the policy's mean
+    action (how an SAC policy is deployed; SB3's ``evaluate_policy`` default), ``sampled``
+    flies the stochastic MCE policy itself. The row holds both (``SR_mean``,
+    ``SR_sampled``, ...); the figure shows the table's."""
+    evs = {mode: solver.evaluate(int(cfg.eval_episodes), deterministic=mode == "mean",
+                                 true_game=True, trajectories=True,
+                                 rng=np.random.default_rng(derived_seed(cfg.seed, 3)))
+           for mode in ("mean", "sampled")}
+    row = {"CR_mean": None, "CR_std": None, "RFD": None}
+    for mode, ev in evs.items():
+        row[f"SR_{mode}"], row[f"CVR_{mode}"] = ev.success_rate, ev.violation_rate
+    shown = evs[str(cfg.solver.eval_action)]
+    row.update(SR=shown.success_rate, CVR=shown.violation_rate)
+    return row, shown.paths
 
 
 def constraint_row(mask: np.ndarray, p: DroneProblem) -> dict:
@@ -155,8 +168,12 @@ def run_icrl(name: str, trainer: DICRL, cfg, p: DroneProblem, logger, run_of,
     rows = []
     for i, v in enumerate(trainer.local):
         mask = learned_constraints(trainer.state.cost_weights[i], a.threshold)
-        trainer.policy(i)  # a last solve on the final (η̄, ω_c): the learned policy
-        row, paths = evaluate_true_game(trainer.learner_model.solvers[i], cfg)
+        # The learned policy is the inner problem's solution at the learned (η̄, ω_c): a
+        # last solve, `solver.final_timesteps` long, brings SAC closer to it.
+        solver = trainer.learner_model.solvers[i]
+        solver.solve(trainer.state.eta_bar[i], trainer.state.cost_weights[i],
+                     int(cfg.solver.final_timesteps))
+        row, paths = evaluate_true_game(solver, cfg)
         row.update(constraint_row(mask, p), multiplier=float(trainer.state.eta_bar[i, -1]),
                    reward_weights=trainer.state.eta_bar[i, :-1].tolist())
         label = f"{name} learner {v + 1}" if trainer.n_learners > 1 else name

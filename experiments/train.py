@@ -170,6 +170,10 @@ VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
 # Rules of the drone arena only (env=drones), and the grid world's keys it has not.
 DRONE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
     ("solver.timesteps", int, _ge(1), "an int >= 1 (SAC env steps per solve)", "2000"),
+    ("solver.eval_action", str, lambda x: x in ("mean", "sampled"),
+     "'mean' or 'sampled' (the actions of the table's SR and CVR rollouts)", "mean"),
+    ("solver.final_timesteps", int, _ge(1),
+     "an int >= 1 (SAC steps of the last solve, on the learned (η̄, ω_c))", "2000"),
     ("solver.warmup_timesteps", int, _ge(0), "an int >= 0 (SAC pre-training steps)",
      "30000"),
     ("solver.n_eval_episodes", int, _ge(1), "an int >= 1 (rollouts per estimate)", "10"),
@@ -191,7 +195,8 @@ KNOWN_KEYS = {
          "checkpoint_every", "resume", "baselines"},
     "env": {"layout", "model", "true_reward_weights", "arena"},
     # the drones' solver node (the grid's has a _target_, checked against its signature)
-    "solver": {"timesteps", "warmup_timesteps", "n_eval_episodes", "solver"},
+    "solver": {"timesteps", "warmup_timesteps", "final_timesteps", "n_eval_episodes",
+               "eval_action", "solver"},
     "features": {"reward", "cost"},
     "graph": {"inner", "outer"},
     "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",

@@ -172,6 +172,8 @@ def test_table2_config_is_checked():
     for bad, match in [("solver.timesteps=0", "solver.timesteps=0 is invalid"),
                        ("baselines.run=[ME-greedy]", r"among \['M\(C\)E-greedy'\]"),
                        ("comm=distributed", "not supported for the drone arena"),
+                       ("solver.eval_action=greedy", "'mean' or 'sampled'"),
+                       ("solver.final_timesteps=0", "solver.final_timesteps=0 is invalid"),
                        ("+solver.solver.ent_coeff=1", "did you mean 'ent_coef'")]:
         with pytest.raises(train.ConfigError, match=match):
             train.check_config(_compose(bad))
@@ -196,6 +198,10 @@ def test_table2_entry_point_end_to_end(tmp_path):
     for name in ("D-ICRL", "C-ICRL", "M(C)E-greedy"):
         for row in methods[name]["learners"]:
             assert 0 <= row["SR"] <= 1 and 0 <= row["CVR"] <= 1
+            # The table shows the mean-action rollouts (solver.eval_action), and the row
+            # also holds the sampled ones, on the same episode seeds.
+            assert (row["SR"], row["CVR"]) == (row["SR_mean"], row["CVR_mean"])
+            assert 0 <= row["SR_sampled"] <= 1 and 0 <= row["CVR_sampled"] <= 1
             assert row["CR_mean"] is None and row["RFD"] is None
             assert 0 <= row["FPR"] <= 1 and 0 <= row["FNR"] <= 1
     assert "SR" in out.stdout and "D-ICRL 2" in out.stdout
