@@ -4,7 +4,6 @@ result files, the logger and the results table (DESIGN §8)."""
 from __future__ import annotations
 
 import dataclasses
-
 import json
 from collections.abc import Callable, Sequence
 from pathlib import Path

@@ -1,17 +1,18 @@
 """Expert demonstrations of the drone arena (DESIGN §7, paper §6.2): planner, storage,
 partitioning.
 
-The experts are a planner, imperfect and human-like like the paper's hand-flown
-Gazebo pairs. For each pair it draws, per drone, the side on which the drone passes the
-central block and then via-points at random (from an explicit ``np.random.Generator``)
-inside boxes along that side, checks that the piecewise-linear path keeps a clearance
-from obstacles and walls, and gives each drone a random cruise speed. Detours on both
-sides put the pairs over every free cell that a straight route to the door crosses, so
-only the block's cells are avoided by all pairs. One drone, drawn at random, yields: it
+The experts are a planner, imperfect and human-like like the paper's hand-flown Gazebo
+pairs. For each pair it draws, per drone, the side on which the drone passes the central
+block and then via-points at random (from an explicit ``np.random.Generator``) inside
+boxes along that side, checks that the piecewise-linear path keeps a clearance from
+obstacles and walls, and gives each drone a random cruise speed. Detours on both sides
+put the pairs over every free cell that a straight route to the door crosses, so only
+the block's cells are avoided by all pairs. One drone, drawn at random, yields: it
 hovers at its first via-point until the other has passed, for the shortest wait (plus a
-random hesitation) that keeps the planned drones ``SAFE_SEPARATION`` apart. A feed-forward plus proportional velocity
-controller tracks the timed paths in the *true* game (:class:`DroneArena` with its
-noise); only pairs in which both drones reach their doors with no violation are kept.
+random hesitation) that keeps the planned drones ``SAFE_SEPARATION`` apart. A
+feed-forward plus proportional velocity controller tracks the timed paths in the *true*
+game (:class:`DroneArena` with its noise); only pairs in which both drones reach their
+doors with no violation are kept.
 
 A set of ``m`` pairs is ``states [m, T+1, 2, 4]`` float64 (positions and velocities),
 ``actions [m, T, 2, 2]`` float64 velocity commands, ``lengths [m]`` int64 (steps until
@@ -76,7 +77,7 @@ KP: float = 1.5
 """Proportional gain (1/s) of the tracking controller."""
 Box = tuple[tuple[float, float], tuple[float, float]]
 VIA_BOXES: dict[str, tuple[Box, ...]] = {
-    # Pass the block on the side of the own door, crossing the other drone below it.
+    # Pass the block on the side of the own door (under it first).
     "far": (
         ((2.3, 3.0), (2.2, 3.0)),    # on the straight route: the yielding drone hovers here
         ((4.0, 4.6), (4.3, 4.6)),    # under the block's near half
@@ -84,7 +85,7 @@ VIA_BOXES: dict[str, tuple[Box, ...]] = {
         ((6.4, 6.7), (6.4, 6.7)),    # beyond its upper far corner
         ((7.6, 8.4), (8.9, 9.3)),    # below the door, left of its centre
     ),
-    # Pass the block on the side of the own start, crossing the other drone above it.
+    # Pass the block on the side of the own start (over it last).
     "near": (
         ((1.9, 2.6), (2.2, 3.0)),    # the yielding drone hovers here
         ((3.3, 3.6), (5.0, 5.6)),    # beside the block's near side
@@ -444,8 +445,9 @@ def _sample_route(drone: int, start: np.ndarray, rng: np.random.Generator) -> np
     block, the door; mirrored for drone 1."""
     side = ("far", "near")[int(rng.integers(2))]
     via = np.array([[rng.uniform(*bx), rng.uniform(*by)] for bx, by in VIA_BOXES[side]])
-    lo, hi = DOORS[0]
-    end = np.array([[np.clip(via[-1, 0], lo + DOOR_MARGIN, hi - DOOR_MARGIN), ROOM_SIZE - 0.05]])
+    lo, hi = DOORS[0]  # drone 0's door: drone 1's route is the mirror image (below)
+    end_x = np.clip(via[-1, 0], lo + DOOR_MARGIN, hi - DOOR_MARGIN)
+    end = np.array([[end_x, ROOM_SIZE - 0.05]])
     pts = np.concatenate([via, end])
     if drone == 1:
         pts[:, 0] = ROOM_SIZE - pts[:, 0]

@@ -17,11 +17,11 @@ Geometry (metres, ``x`` to the right, ``y`` up, origin at the bottom-left corner
 top-right corner; ``drone_1`` mirrors it, so their straight routes cross in the middle.
 The obstacle, a 2 m x 1 m block, sits exactly where both straight routes cross: the
 straight route of either drone from its (jittered) start to its door's centre crosses
-both of its cells. That is what makes its cells learnable from demonstrations. ICRL learns a cell as a constraint
-only when the unconstrained policy would enter it and the experts do not; an obstacle
-that no reward-seeking route approaches leaves no trace in any demonstration. The
-block is aligned to the 1 m grid, so "cells overlapping an obstacle" (the true cost
-constraints of the cell basis) are exactly the cells inside it.
+both of its cells. That is what makes its cells learnable from demonstrations. ICRL
+learns a cell as a constraint only when the unconstrained policy would enter it and the
+experts do not; an obstacle that no reward-seeking route approaches leaves no trace in
+any demonstration. The block is aligned to the 1 m grid, so "cells overlapping an
+obstacle" (the true cost constraints of the cell basis) are exactly the cells inside it.
 
 Dynamics of each drone (fixed altitude, planar): the action is a velocity command
 ``u ∈ [-1, 1]^2`` (times ``max_speed``), tracked with a first-order response plus
