@@ -6,6 +6,8 @@ are reproducible and the file runs in well under a minute.
 
 from __future__ import annotations
 
+import tempfile
+
 import numpy as np
 import pytest
 import torch
@@ -155,6 +157,17 @@ def test_ent_coef_fixed_and_warm_start_keeps_networks_and_buffer():
     assert model.ent_coef_optimizer is None and model.log_ent_coef is None
     assert float(model.ent_coef_tensor) == pytest.approx(0.7)
     np.testing.assert_array_equal(buf.cost_weights, wc2)
+
+
+def test_solving_leaves_no_directories_in_the_temp_dir(tmp_path, monkeypatch):
+    # SB3's default logger makes an SB3-<time> directory per learn() call.
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.delenv("SB3_LOGDIR", raising=False)
+    solver = make_solver(seed=6)
+    eta, wc = random_weights(np.random.default_rng(6))
+    solver.solve(eta, wc, 60, n_eval_episodes=1)
+    solver.solve(eta, wc, 60, n_eval_episodes=1)
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("bad", ["auto", "auto_0.1", 0.0, -1.0, float("nan")])

@@ -64,6 +64,7 @@ from gymnasium import spaces
 from stable_baselines3 import SAC
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 from torch import nn
@@ -566,6 +567,9 @@ class SACConstrainedSolver:
                 policy_kwargs=policy_kwargs, device=self.device, seed=None, verbose=0,
                 **kwargs,
             )
+        # Without a logger of its own, every learn() call makes SB3 create an empty
+        # SB3-<time> directory in the system temp dir: thousands per table2 run.
+        self.model.set_logger(Logger(folder=None, output_formats=[]))
         # Random warm-up actions come from the action space's own generator.
         self.model.action_space.seed(self.seed)
         self.eta: np.ndarray | None = None
