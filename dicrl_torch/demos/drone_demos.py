@@ -78,6 +78,7 @@ HESITATION: tuple[float, float] = (0.0, 0.3)
 KP: float = 1.5
 """Proportional gain (1/s) of the tracking controller."""
 Box = tuple[tuple[float, float], tuple[float, float]]
+_DOOR_APPROACH: Box = ((7.3, 9.4), (8.9, 9.3))  # below the door, anywhere across it
 VIA_BOXES: dict[str, tuple[Box, ...]] = {
     # Pass the block on the side of the own door (under it first).
     "far": (
@@ -85,7 +86,7 @@ VIA_BOXES: dict[str, tuple[Box, ...]] = {
         ((4.0, 4.6), (4.3, 4.6)),    # under the block's near half
         ((6.4, 6.7), (4.3, 4.6)),    # beyond its lower far corner
         ((6.4, 6.7), (6.4, 6.7)),    # beyond its upper far corner
-        ((7.3, 9.4), (8.9, 9.3)),    # below the door, anywhere across it
+        _DOOR_APPROACH,
     ),
     # Pass the block on the side of the own start (over it last).
     "near": (
@@ -93,7 +94,7 @@ VIA_BOXES: dict[str, tuple[Box, ...]] = {
         ((3.3, 3.6), (5.0, 5.6)),    # beside the block's near side
         ((3.3, 3.6), (6.4, 6.6)),    # beyond its upper near corner
         ((4.8, 5.6), (6.4, 6.7)),    # above the block
-        ((7.3, 9.4), (8.9, 9.3)),    # below the door, anywhere across it
+        _DOOR_APPROACH,
     ),
 }
 """``((x_lo, x_hi), (y_lo, y_hi))`` boxes of drone 0's via-points, in path order, for
