@@ -95,6 +95,8 @@ def make_drone_trainer(cfg, p: DroneProblem, base: SACConstrainedSolver, shards,
     """A trainer whose local learners each own a clone of ``base`` (seeded per learner
     and per ``stream``: 0 for D-ICRL, 1 for C-ICRL)."""
     solvers = [base.clone(derived_seed(cfg.seed, 2, stream, v)) for v in communicator.local_ids]
+    for solver, shard in zip(solvers, shards, strict=True):  # both in local_ids order
+        solver.set_demonstrations(shard)  # its own pairs only (solver.demo_fraction)
     model = SACLearnerModel(solvers=solvers, timesteps=int(cfg.solver.timesteps),
                             n_eval_episodes=int(cfg.solver.n_eval_episodes))
     return DICRL(learner_model=model, shards=shards, trajectory_counts=counts,

@@ -291,3 +291,66 @@ def test_joint_obs_round_trip_and_demo_feature_sums(demos):
     torch.testing.assert_close(sums[k], w @ phi)
     plain = discounted_demo_feature_sums(demos, basis, 0.9, absorbing=False)
     torch.testing.assert_close(plain[k], (0.9 ** torch.arange(L, dtype=torch.float64)) @ phi)
+
+
+def demo_transition_table(demos, solver: SACConstrainedSolver, eta: np.ndarray,
+                          wc: np.ndarray) -> dict[bytes, tuple[float, float, np.ndarray]]:
+    """Every demonstrated transition, computed straight from the pairs and the bases:
+    ``(o_t, o_{t+1})`` bytes -> (reward under ``eta, wc``, done, action)."""
+    table = {}
+    for k in range(demos.n_pairs):
+        L = int(demos.lengths[k])
+        for t in range(L):
+            s1 = torch.from_numpy(np.array(demos.states[k, t + 1]))
+            r = (float(solver.reward_basis(s1) @ torch.from_numpy(eta[:-1]))
+                 + eta[-1] * float(solver.cost_basis(s1) @ torch.from_numpy(wc)))
+            last = t == L - 1
+            key = (joint_obs_from_states(demos.states[k, t]).tobytes()
+                   + joint_obs_from_states(demos.states[k, t + 1]).tobytes())
+            table[key] = ((1 / (1 - GAMMA) if last else 1.0) * r, float(last),
+                          np.array(demos.actions[k, t]).reshape(-1))
+    return table
+
+
+def test_demonstrated_transitions_fill_their_share_of_each_batch(demos):
+    """With demo_fraction 0.25, the last quarter of each batch are the learner's own
+    demonstrated transitions, relabelled under the current weights (the last one of a
+    pair terminal and absorbing); the rest come from the env as before."""
+    solver = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25)
+    rng = np.random.default_rng(4)
+    solver.solve(*random_weights(rng), 200, n_eval_episodes=1)
+    solver.set_demonstrations(demos)
+    buf = solver.replay_buffer
+    np.random.seed(0)  # noqa: NPY002 (SB3's sampling stream; deterministic test)
+    for _ in range(2):  # new weights relabel the demonstrated transitions too
+        eta, wc = random_weights(rng)
+        solver.set_weights(eta, wc)
+        table = demo_transition_table(demos, solver, eta, wc)
+        batch = buf.sample(400)
+        assert batch.observations.shape == (400, 20) and batch.rewards.shape == (400, 1)
+        b, e = buf.last_sample_indices
+        assert len(b) == 300
+        np.testing.assert_array_equal(batch.observations[:300].numpy(), buf.observations[b, e])
+        np.testing.assert_allclose(batch.rewards[:300, 0].numpy(),
+                                   hand_rewards(buf, b, e, eta, wc), rtol=1e-5, atol=1e-4)
+        done = []
+        for i in range(300, 400):
+            key = (batch.observations[i].numpy().tobytes()
+                   + batch.next_observations[i].numpy().tobytes())
+            reward, d, action = table[key]
+            assert float(batch.rewards[i, 0]) == pytest.approx(reward, rel=1e-5, abs=1e-4)
+            np.testing.assert_allclose(batch.actions[i].numpy(), action, atol=1e-6)
+            done.append(float(batch.dones[i, 0]) == d)
+        assert all(done)
+    solver.set_demonstrations(None)
+    assert len(buf.sample(40).observations) == 40 and len(buf.last_sample_indices[0]) == 40
+
+
+def test_demonstrations_are_refused_when_malformed(demos):
+    with pytest.raises(ValueError, match="demo_fraction"):
+        make_solver(demo_fraction=1.0)
+    solver = make_solver(demo_fraction=0.5)
+    with pytest.raises(ValueError, match="DroneDemonstrations"):
+        solver.set_demonstrations(np.zeros((2, 10, 2, 4)))
+    with pytest.raises(ValueError, match="fraction"):
+        solver.replay_buffer.set_demonstrations(demos, -0.1)

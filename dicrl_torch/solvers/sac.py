@@ -201,7 +201,9 @@ class FeatureReplayBuffer(ReplayBuffer):
     reward SB3's ``add`` receives is ignored.
 
     :meth:`sample` returns rewards ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` from the weights
-    of the last :meth:`set_weights`, computed in float64 then cast to float32.
+    of the last :meth:`set_weights`, computed in float64 then cast to float32. After
+    :meth:`set_demonstrations`, a fixed share of every batch is drawn from the learner's
+    own demonstrated transitions, relabelled the same way.
 
     Args:
         buffer_size, observation_space, action_space, device, n_envs,
@@ -252,7 +254,10 @@ class FeatureReplayBuffer(ReplayBuffer):
         self.multiplier: float | None = None
         self.cost_weights: np.ndarray | None = None
         self.last_sample_indices: tuple[np.ndarray, np.ndarray] | None = None
-        """``(batch_inds, env_indices)`` of the last :meth:`sample`, for inspection."""
+        """``(batch_inds, env_indices)`` of the last :meth:`sample`'s transitions from
+        the env, for inspection."""
+        self.demo_fraction = 0.0
+        self._demo: dict[str, np.ndarray] | None = None
 
     def set_weights(self, reward_weights: Any, multiplier: Any, cost_weights: Any) -> None:
         """Set ``ω_r [l_r]``, ``λ`` and ``ω_c [l_c]``; every later sample uses them."""
@@ -288,15 +293,80 @@ class FeatureReplayBuffer(ReplayBuffer):
 
     def compute_rewards(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
         """``[B]`` float64 rewards of stored transitions under the current weights."""
+        return self._relabel(self.reward_features[batch_inds, env_indices],
+                             self.cost_features[batch_inds, env_indices],
+                             self.reward_scale[batch_inds, env_indices])
+
+    def _relabel(self, phi_r: np.ndarray, phi_c: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """``[B]`` float64 ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` under the current weights."""
         if self.reward_weights is None:
             raise RuntimeError(
                 "FeatureReplayBuffer has no weights yet; call set_weights(reward_weights, "
                 "multiplier, cost_weights) before sampling."
             )
-        phi_r = self.reward_features[batch_inds, env_indices].astype(np.float64)
-        phi_c = self.cost_features[batch_inds, env_indices].astype(np.float64)
-        r = phi_r @ self.reward_weights + self.multiplier * (phi_c @ self.cost_weights)
-        return self.reward_scale[batch_inds, env_indices] * r
+        r = (phi_r.astype(np.float64) @ self.reward_weights
+             + self.multiplier * (phi_c.astype(np.float64) @ self.cost_weights))
+        return scale * r
+
+    def set_demonstrations(self, demos: DroneDemonstrations | None, fraction: float) -> None:
+        """Mix demonstrated transitions into every batch (``None`` removes them).
+
+        Each pair of length ``L`` gives ``L`` transitions ``(o_t, a_t, o_{t+1})``, the
+        last one terminal (both drones done; absorbing when the buffer is), with the
+        features of ``s_{t+1}``: the same record as an env transition, so the same
+        relabelling applies. SAC is off-policy, so this leaves the soft-optimal policy
+        it converges to unchanged; it shows the critic routes round the obstacles that
+        its own exploration, starting from a policy that flies straight, rarely finds.
+
+        Args:
+            demos: the learner's own pairs (never another learner's).
+            fraction: share of each batch drawn from them, in ``[0, 1)``.
+        """
+        if isinstance(fraction, bool) or not isinstance(fraction, int | float | np.floating) \
+                or not 0.0 <= float(fraction) < 1.0:
+            raise ValueError(f"fraction must be a float in [0, 1), got {fraction!r}: the "
+                             f"batch needs some of the policy's own transitions.")
+        if demos is None:
+            self._demo, self.demo_fraction = None, 0.0
+            return
+        if not isinstance(demos, DroneDemonstrations):
+            raise ValueError(f"demos must be DroneDemonstrations, got {type(demos).__name__}.")
+        lengths = np.asarray(demos.lengths)
+        pair = np.repeat(np.arange(demos.n_pairs), lengths)  # [n] transition -> pair
+        t = np.concatenate([np.arange(n) for n in lengths])  # [n] its step in the pair
+        states, next_states = demos.states[pair, t], demos.states[pair, t + 1]
+        terminal = t == lengths[pair] - 1
+        self._demo = {
+            "obs": joint_obs_from_states(states),
+            "next_obs": joint_obs_from_states(next_states),
+            "actions": np.asarray(demos.actions[pair, t], dtype=np.float32).reshape(
+                len(t), 2 * N_DRONES),
+            "dones": terminal.astype(np.float32),
+            "phi_r": _features(self.reward_basis, next_states),
+            "phi_c": _features(self.cost_basis, next_states),
+            "scale": np.where(terminal & self.absorbing, 1.0 / (1.0 - self.gamma), 1.0),
+        }
+        self.demo_fraction = float(fraction)
+
+    def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
+        """A batch of ``batch_size`` transitions: ``round(demo_fraction · batch_size)``
+        demonstrated ones (if any) after those from the env."""
+        n_demo = 0 if self._demo is None else int(round(batch_size * self.demo_fraction))
+        online = super().sample(batch_size - n_demo, env=env)
+        if n_demo == 0:
+            return online
+        d = self._demo
+        idx = np.random.randint(0, len(d["dones"]), size=n_demo)  # noqa: NPY002 (as SB3)
+        rewards = self._relabel(d["phi_r"][idx], d["phi_c"][idx], d["scale"][idx])
+        demo = (
+            self._normalize_obs(d["obs"][idx], env),
+            d["actions"][idx],
+            self._normalize_obs(d["next_obs"][idx], env),
+            d["dones"][idx].reshape(-1, 1),
+            self._normalize_reward(rewards.astype(np.float32).reshape(-1, 1), env),
+        )
+        return ReplayBufferSamples(*(torch.cat([a, self.to_torch(b)])
+                                     for a, b in zip(online[:5], demo, strict=True)))
 
     def _get_samples(self, batch_inds: np.ndarray,
                      env: VecNormalize | None = None) -> ReplayBufferSamples:
@@ -466,6 +536,8 @@ class SACConstrainedSolver:
         action_margin: demonstrated actions are clipped to ``±(1 - action_margin)`` in
             :meth:`log_likelihood` (the squashed density is infinite at ``±1``).
         feature_dtype: storage dtype of the buffer's features.
+        demo_fraction: share of each SAC batch drawn from the demonstrations given to
+            :meth:`set_demonstrations` (none are by default), in ``[0, 1)``.
         sac_kwargs: further keyword arguments for ``stable_baselines3.SAC``.
     """
 
@@ -492,8 +564,14 @@ class SACConstrainedSolver:
         net_arch: Sequence[int] = (64, 64),
         action_margin: float = 1e-3,
         feature_dtype: Any = np.float32,
+        demo_fraction: float = 0.0,
         sac_kwargs: dict[str, Any] | None = None,
     ) -> None:
+        if isinstance(demo_fraction, bool) \
+                or not isinstance(demo_fraction, int | float | np.floating) \
+                or not 0.0 <= float(demo_fraction) < 1.0:
+            raise ValueError(f"demo_fraction must be a float in [0, 1), got {demo_fraction!r}.")
+        self.demo_fraction = float(demo_fraction)
         self.l_r = _basis_dim(reward_basis, "reward_basis")
         self.l_c = _basis_dim(cost_basis, "cost_basis")
         self.reward_basis, self.cost_basis = reward_basis, cost_basis
@@ -626,6 +704,13 @@ class SACConstrainedSolver:
         cost_weights = _weights(cost_weights, "cost_weights", self.l_c)
         self.replay_buffer.set_weights(eta[:-1], eta[-1], cost_weights)
         self.eta, self.cost_weights = eta, cost_weights
+
+    def set_demonstrations(self, demos: DroneDemonstrations | None) -> None:
+        """Let ``demo_fraction`` of every SAC batch come from ``demos``' transitions,
+        relabelled with the current weights like the rest (see
+        :meth:`FeatureReplayBuffer.set_demonstrations`). Give a learner only its own
+        pairs; ``None`` removes them."""
+        self.replay_buffer.set_demonstrations(demos, self.demo_fraction)
 
     # ---- solving ------------------------------------------------------------------
     def solve(self, eta: Any, cost_weights: Any, timesteps: int, *,
