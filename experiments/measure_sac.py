@@ -5,7 +5,7 @@
     .venv/bin/python experiments/measure_sac.py --steps 4000 --device cuda
 
 For each ``n_envs`` and ``--gradient-steps`` (per vectorised env step; ``n_envs`` of them
-is one update per env step, what the table2 config uses): a solver with the default
+is one update per env step; the configs use 1): a solver with the default
 hyper-parameters (batch 256, 64x64 networks, cell-occupancy cost basis with 201
 features), a warm-up until learning has started, then ``--steps`` more env steps timed.
 Prints one JSON line per setting with the median over ``--repeat`` runs of env steps/s
@@ -53,7 +53,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--gradient-steps", type=int, nargs="+", default=[1],
-                        help="gradient steps per vectorised env step (table2 uses n_envs)")
+                        help="gradient steps per vectorised env step (n_envs: one per env step)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     for n_envs, gradient_steps in itertools.product(args.n_envs, args.gradient_steps):

@@ -121,6 +121,15 @@ def _weights(value: Any, name: str, dim: int) -> np.ndarray:
     return arr
 
 
+def _check_fraction(value: Any, name: str) -> float:
+    """A batch share in ``[0, 1)`` (some of each batch must be the policy's own)."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating) \
+            or not 0.0 <= float(value) < 1.0:
+        raise ValueError(f"{name} must be a float in [0, 1), got {value!r}: the batch needs "
+                         f"some of the policy's own transitions.")
+    return float(value)
+
+
 def _basis_dim(basis: Any, name: str) -> int:
     if not isinstance(basis, nn.Module) or not hasattr(basis, "dim"):
         raise ValueError(
@@ -322,10 +331,7 @@ class FeatureReplayBuffer(ReplayBuffer):
             demos: the learner's own pairs (never another learner's).
             fraction: share of each batch drawn from them, in ``[0, 1)``.
         """
-        if isinstance(fraction, bool) or not isinstance(fraction, int | float | np.floating) \
-                or not 0.0 <= float(fraction) < 1.0:
-            raise ValueError(f"fraction must be a float in [0, 1), got {fraction!r}: the "
-                             f"batch needs some of the policy's own transitions.")
+        fraction = _check_fraction(fraction, "fraction")
         if demos is None:
             self._demo, self.demo_fraction = None, 0.0
             return
@@ -346,7 +352,7 @@ class FeatureReplayBuffer(ReplayBuffer):
             "phi_c": _features(self.cost_basis, next_states),
             "scale": np.where(terminal & self.absorbing, 1.0 / (1.0 - self.gamma), 1.0),
         }
-        self.demo_fraction = float(fraction)
+        self.demo_fraction = fraction
 
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
         """A batch of ``batch_size`` transitions: ``round(demo_fraction · batch_size)``
@@ -357,16 +363,20 @@ class FeatureReplayBuffer(ReplayBuffer):
             return online
         d = self._demo
         idx = np.random.randint(0, len(d["dones"]), size=n_demo)  # noqa: NPY002 (as SB3)
-        rewards = self._relabel(d["phi_r"][idx], d["phi_c"][idx], d["scale"][idx])
-        demo = (
-            self._normalize_obs(d["obs"][idx], env),
-            d["actions"][idx],
-            self._normalize_obs(d["next_obs"][idx], env),
-            d["dones"][idx].reshape(-1, 1),
-            self._normalize_reward(rewards.astype(np.float32).reshape(-1, 1), env),
-        )
-        return ReplayBufferSamples(*(torch.cat([a, self.to_torch(b)])
-                                     for a, b in zip(online[:5], demo, strict=True)))
+        demo = self._samples(
+            d["obs"][idx], d["actions"][idx], d["next_obs"][idx], d["dones"][idx],
+            self._relabel(d["phi_r"][idx], d["phi_c"][idx], d["scale"][idx]), env)
+        return ReplayBufferSamples(*(torch.cat(pair)
+                                     for pair in zip(online[:5], demo[:5], strict=True)))
+
+    def _samples(self, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray,
+                 dones: np.ndarray, rewards: np.ndarray,
+                 env: VecNormalize | None) -> ReplayBufferSamples:
+        """SB3's batch from ``[B, ...]`` arrays: normalised, float32 rewards ``[B, 1]``."""
+        data = (self._normalize_obs(obs, env), actions, self._normalize_obs(next_obs, env),
+                dones.reshape(-1, 1),
+                self._normalize_reward(rewards.astype(np.float32).reshape(-1, 1), env))
+        return ReplayBufferSamples(*tuple(map(self.to_torch, data)))
 
     def _get_samples(self, batch_inds: np.ndarray,
                      env: VecNormalize | None = None) -> ReplayBufferSamples:
@@ -375,16 +385,12 @@ class FeatureReplayBuffer(ReplayBuffer):
         env_indices = np.random.randint(0, high=self.n_envs,  # noqa: NPY002 (as SB3)
                                         size=(len(batch_inds),))
         self.last_sample_indices = (np.asarray(batch_inds), env_indices)
-        rewards = self.compute_rewards(batch_inds, env_indices).astype(np.float32)
-        data = (
-            self._normalize_obs(self.observations[batch_inds, env_indices, :], env),
+        return self._samples(
+            self.observations[batch_inds, env_indices, :],
             self.actions[batch_inds, env_indices, :],
-            self._normalize_obs(self.next_observations[batch_inds, env_indices, :], env),
-            (self.dones[batch_inds, env_indices]
-             * (1 - self.timeouts[batch_inds, env_indices])).reshape(-1, 1),
-            self._normalize_reward(rewards.reshape(-1, 1), env),
-        )
-        return ReplayBufferSamples(*tuple(map(self.to_torch, data)))
+            self.next_observations[batch_inds, env_indices, :],
+            self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices]),
+            self.compute_rewards(batch_inds, env_indices), env)
 
 
 # ----------------------------------------------------------------------- the result
@@ -567,11 +573,7 @@ class SACConstrainedSolver:
         demo_fraction: float = 0.0,
         sac_kwargs: dict[str, Any] | None = None,
     ) -> None:
-        if isinstance(demo_fraction, bool) \
-                or not isinstance(demo_fraction, int | float | np.floating) \
-                or not 0.0 <= float(demo_fraction) < 1.0:
-            raise ValueError(f"demo_fraction must be a float in [0, 1), got {demo_fraction!r}.")
-        self.demo_fraction = float(demo_fraction)
+        self.demo_fraction = _check_fraction(demo_fraction, "demo_fraction")
         self.l_r = _basis_dim(reward_basis, "reward_basis")
         self.l_c = _basis_dim(cost_basis, "cost_basis")
         self.reward_basis, self.cost_basis = reward_basis, cost_basis
