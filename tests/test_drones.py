@@ -533,6 +533,30 @@ def test_reward_bases():
     assert torch.all(phi[:, 0] == 1)  # the constant term
 
 
+def test_exponential_closeness_against_direct_formula():
+    """closeness='exponential' is exp(-|p - g| / length) outside the door, and makes the
+    top corner beside a door earn clearly less than the door (the linear shape: 0.91)."""
+    basis = DoorLocationRewardBasis(closeness="exponential", closeness_length=1.5)
+    rng = np.random.default_rng(1)
+    states = rng.uniform(0, ROOM_SIZE, size=(300, 2, 4))
+    states[..., 1] = np.minimum(states[..., 1], 9.0)  # below the doors' mouths
+    phi = basis(states).numpy().reshape(300, 2, 2)
+    doors = np.array([[8.75, 10.0], [1.25, 10.0]])
+    dist = np.linalg.norm(states[..., :2] - doors, axis=-1)
+    np.testing.assert_allclose(phi[..., 1], np.exp(-dist / 1.5), rtol=1e-12)
+    np.testing.assert_allclose(phi[..., 0], DoorLocationRewardBasis()(states).numpy()
+                               .reshape(300, 2, 2)[..., 0])  # progress is unchanged
+    corners = torch.tensor([[[10.0, 10.0, 0, 0], [0.0, 10.0, 0, 0]]], dtype=torch.float64)
+    assert DoorLocationRewardBasis()(corners)[0, 1] > 0.9
+    assert basis(corners)[0, 1] < 0.5 and basis(corners)[0, 3] < 0.5
+    at_door = torch.tensor([[[8.75, 10.0, 0, 0], [1.25, 10.0, 0, 0]]], dtype=torch.float64)
+    assert basis(at_door)[0].tolist() == [1.0, 1.0, 1.0, 1.0]
+    with pytest.raises(ValueError, match="closeness must be one of"):
+        DoorLocationRewardBasis(closeness="cubic")
+    with pytest.raises(ValueError, match="closeness_length"):
+        DoorLocationRewardBasis(closeness="exponential", closeness_length=0)
+
+
 def test_feature_input_checks():
     basis = CellOccupancyCostBasis()
     with pytest.raises(ValueError, match=r"\[\.\.\., 2, 4\]"):

@@ -17,6 +17,7 @@ from dicrl_torch.demos.drone_demos import make_drone_demonstrations
 from dicrl_torch.envs.drones import JointDroneEnv, joint_obs_to_state
 from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
 from dicrl_torch.solvers.sac import (
+    BoxScaler,
     FeatureReplayBuffer,
     SACConstrainedSolver,
     discounted_demo_feature_sums,
@@ -354,3 +355,30 @@ def test_demonstrations_are_refused_when_malformed(demos):
         solver.set_demonstrations(np.zeros((2, 10, 2, 4)))
     with pytest.raises(ValueError, match="fraction"):
         solver.replay_buffer.set_demonstrations(demos, -0.1)
+
+
+def test_box_scaler_maps_the_bounds_onto_unit_box():
+    """BoxScaler sends each bounded coordinate's low/high to -1/+1 (constant ones to 0),
+    and scale_observations=True puts it in front of the actor and both critics."""
+    space = spaces.Box(low=np.array([0.0, -1.5, 5.0], dtype=np.float32),
+                       high=np.array([10.0, 1.5, 5.0], dtype=np.float32))
+    scaler = BoxScaler(space)
+    obs = torch.tensor([[0.0, -1.5, 5.0], [10.0, 1.5, 5.0], [2.5, 0.75, 5.0]])
+    expected = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-0.5, 0.5, 0.0]])
+    torch.testing.assert_close(scaler(obs), expected)
+    with pytest.raises(ValueError, match="finite"):
+        BoxScaler(spaces.Box(low=-np.inf, high=np.inf, shape=(2,), dtype=np.float32))
+    solver = make_solver(scale_observations=True)
+    policy = solver.model.policy
+    for extractor in (policy.actor.features_extractor, policy.critic.features_extractor,
+                      policy.critic_target.features_extractor):
+        assert isinstance(extractor, BoxScaler)
+    env_space = solver.vec_env.observation_space
+    low = torch.as_tensor(env_space.low)[None]
+    torch.testing.assert_close(policy.actor.features_extractor(low),
+                               -torch.ones_like(low))  # every bound spans an interval
+    with pytest.raises(ValueError, match="scale_observations must be a bool"):
+        make_solver(scale_observations="yes")
+    with pytest.raises(ValueError, match="drop features_extractor_class"):
+        make_solver(scale_observations=True,
+                    sac_kwargs={"policy_kwargs": {"features_extractor_class": BoxScaler}})

@@ -65,6 +65,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 from torch import nn
@@ -78,6 +79,7 @@ from dicrl_torch.envs.drones import (
 )
 
 __all__ = [
+    "BoxScaler",
     "FeatureReplayBuffer",
     "SACConstrainedSolver",
     "SACLearnerModel",
@@ -128,6 +130,31 @@ def _check_fraction(value: Any, name: str) -> float:
         raise ValueError(f"{name} must be a float in [0, 1), got {value!r}: the batch needs "
                          f"some of the policy's own transitions.")
     return float(value)
+
+
+class BoxScaler(BaseFeaturesExtractor):
+    """Maps a bounded ``Box`` observation ``[B, d]`` affinely onto ``[-1, 1]^d`` by its
+    known bounds (a fixed map, nothing learned or estimated). The arena's positions span
+    0-10 m and its velocities ±1.5 m/s; unscaled, the position inputs dominate the first
+    layer. Constant entries (``low == high``, e.g. the door centres) map to 0.
+
+    Args:
+        observation_space: the ``Box`` whose bounds define the map.
+    """
+
+    def __init__(self, observation_space: spaces.Box) -> None:
+        super().__init__(observation_space, int(np.prod(observation_space.shape)))
+        low = torch.as_tensor(observation_space.low, dtype=torch.float32).flatten()
+        high = torch.as_tensor(observation_space.high, dtype=torch.float32).flatten()
+        if not (torch.isfinite(low).all() and torch.isfinite(high).all()):
+            raise ValueError("BoxScaler needs finite observation bounds; use the default "
+                             "extractor for an unbounded Box.")
+        half = (high - low) / 2
+        self.register_buffer("centre", (high + low) / 2)
+        self.register_buffer("half_width", torch.where(half > 0, half, torch.ones_like(half)))
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        return (observations.flatten(1) - self.centre) / self.half_width
 
 
 def _basis_dim(basis: Any, name: str) -> int:
@@ -544,6 +571,8 @@ class SACConstrainedSolver:
         feature_dtype: storage dtype of the buffer's features.
         demo_fraction: share of each SAC batch drawn from the demonstrations given to
             :meth:`set_demonstrations` (none are by default), in ``[0, 1)``.
+        scale_observations: feed actor and critics observations mapped onto ``[-1, 1]``
+            by the observation space's bounds (:class:`BoxScaler`).
         sac_kwargs: further keyword arguments for ``stable_baselines3.SAC``.
     """
 
@@ -571,6 +600,7 @@ class SACConstrainedSolver:
         action_margin: float = 1e-3,
         feature_dtype: Any = np.float32,
         demo_fraction: float = 0.0,
+        scale_observations: bool = False,
         sac_kwargs: dict[str, Any] | None = None,
     ) -> None:
         self.demo_fraction = _check_fraction(demo_fraction, "demo_fraction")
@@ -628,7 +658,15 @@ class SACConstrainedSolver:
                     f"sac_kwargs must not set {key!r}: the solver fixes it; use the solver's "
                     f"own argument instead."
                 )
+        if not isinstance(scale_observations, bool):
+            raise ValueError(f"scale_observations must be a bool, got {scale_observations!r}.")
+        self.scale_observations = scale_observations
         policy_kwargs = {"net_arch": list(net_arch), **kwargs.pop("policy_kwargs", {})}
+        if scale_observations:
+            if "features_extractor_class" in policy_kwargs:
+                raise ValueError("scale_observations=True sets the features extractor; drop "
+                                 "features_extractor_class from sac_kwargs['policy_kwargs'].")
+            policy_kwargs["features_extractor_class"] = BoxScaler
         # Even building the vec env draws from the global numpy stream (SB3): all of it
         # happens on the solver's private streams.
         with self._private_rng():
