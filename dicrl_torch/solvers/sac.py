@@ -134,9 +134,9 @@ def _check_fraction(value: Any, name: str) -> float:
 
 class BoxScaler(BaseFeaturesExtractor):
     """Maps a bounded ``Box`` observation ``[B, d]`` affinely onto ``[-1, 1]^d`` by its
-    known bounds (a fixed map, nothing learned or estimated). The arena's positions span
-    0-10 m and its velocities ±1.5 m/s; unscaled, the position inputs dominate the first
-    layer. Constant entries (``low == high``, e.g. the door centres) map to 0.
+    known bounds (a fixed map, nothing learned or estimated): the arena's positions span
+    0-10 m and its velocities ±1.5 m/s, so unscaled inputs differ in range by ~7x.
+    Entries with ``low == high`` (none in the arena) map to 0.
 
     Args:
         observation_space: the ``Box`` whose bounds define the map.
