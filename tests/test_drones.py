@@ -580,3 +580,21 @@ def test_render_arena_with_demonstrations(demos):
         constraint_cells=CellOccupancyCostBasis().true_constraints(), title="demos")
     assert img.shape == (320, 320, 3) and img.dtype == np.uint8
     assert len(OBSTACLES) == 1
+
+
+@pytest.mark.parametrize("basis", [CellOccupancyCostBasis(), RBFCostBasis(n_per_axis=3),
+                                   DoorLocationRewardBasis(), FourierRewardBasis(order=1)])
+def test_drone_shares_give_each_feature_to_its_drone(basis):
+    shares = basis.drone_shares()
+    assert shares.shape == (basis.dim, 2) and torch.all(shares.sum(1) == 1.0)
+    for name, row in zip(basis.names, shares, strict=True):
+        if name.startswith("drone0/"):
+            assert row.tolist() == [1.0, 0.0]
+        elif name.startswith("drone1/"):
+            assert row.tolist() == [0.0, 1.0]
+        else:  # shared by both drones: the proximity
+            assert name == "proximity" and row.tolist() == [0.5, 0.5]
+    stray = DoorLocationRewardBasis()
+    stray.names = [*stray.names[:-1], "drone2/closeness"]
+    with pytest.raises(ValueError, match="beyond the arena's 2"):
+        stray.drone_shares()

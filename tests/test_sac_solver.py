@@ -6,16 +6,19 @@ are reproducible and the file runs in well under a minute.
 
 from __future__ import annotations
 
+import copy
 import tempfile
 
 import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
+from stable_baselines3.common.logger import Logger
 
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations
 from dicrl_torch.envs.drones import JointDroneEnv, joint_obs_to_state
 from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
+from dicrl_torch.solvers.decomposed_sac import DecomposedSAC
 from dicrl_torch.solvers.sac import (
     BoxScaler,
     FeatureReplayBuffer,
@@ -382,3 +385,89 @@ def test_box_scaler_maps_the_bounds_onto_unit_box():
     with pytest.raises(ValueError, match="drop features_extractor_class"):
         make_solver(scale_observations=True,
                     sac_kwargs={"policy_kwargs": {"features_extractor_class": BoxScaler}})
+
+
+# ------------------------------------------------------------------ per-drone critics
+def hand_drone_rewards(buf: FeatureReplayBuffer, b: np.ndarray, e: np.ndarray,
+                       eta: np.ndarray, wc: np.ndarray) -> np.ndarray:
+    """``[B, 2]`` each drone's reward from the bases' layout: its 2 reward features, its
+    100 cells and half the proximity (the last cost feature)."""
+    phi_r = buf.reward_features[b, e].astype(np.float64)
+    phi_c = buf.cost_features[b, e].astype(np.float64)
+    cols = []
+    for g in range(2):
+        own_r = slice(2 * g, 2 * g + 2)
+        own_c = slice(100 * g, 100 * g + 100)
+        cols.append(phi_r[:, own_r] @ eta[own_r] + eta[-1] * (
+            phi_c[:, own_c] @ wc[own_c] + 0.5 * phi_c[:, 200] * wc[200]))
+    return buf.reward_scale[b, e][:, None] * np.stack(cols, 1)
+
+
+def test_per_drone_rewards_are_each_drones_share_of_the_joint_reward():
+    solver = make_solver(seed=3, learning_starts=10_000, per_drone_critics=True)
+    rng = np.random.default_rng(8)
+    eta, wc = random_weights(rng)
+    wc[200] = 2.0  # make the shared proximity's split visible
+    solver.solve(eta, wc, 200, n_eval_episodes=1)
+    buf = solver.replay_buffer
+    batch = buf.sample(64)
+    b, e = buf.last_sample_indices
+    assert batch.rewards.shape == (64, 2)
+    expected = hand_drone_rewards(buf, b, e, eta, wc)
+    np.testing.assert_allclose(batch.rewards.numpy(), expected, rtol=1e-6, atol=1e-6)
+    # The columns add up to the joint reward the plain buffer samples.
+    np.testing.assert_allclose(buf.compute_rewards(b, e), hand_rewards(buf, b, e, eta, wc),
+                               rtol=1e-12)
+    assert not np.allclose(expected[:, 0], expected[:, 1])
+
+
+def test_decomposed_sac_with_one_reward_column_matches_sb3_sac(filled):
+    """DecomposedSAC.train is our own loop: with one reward column it must make SB3's
+    SAC updates (same batch, same random numbers)."""
+    sb3 = copy.deepcopy(filled.model)
+    mine = DecomposedSAC("MlpPolicy", filled.vec_env, learning_rate=3e-4, gamma=GAMMA,
+                         tau=0.005, batch_size=32, ent_coef=1.0, device="cpu",
+                         policy_kwargs={"net_arch": [64, 64], "n_rewards": 1})
+    mine.set_logger(Logger(folder=None, output_formats=[]))
+    mine.policy.load_state_dict(sb3.policy.state_dict())
+    mine.actor.optimizer.load_state_dict(sb3.actor.optimizer.state_dict())
+    mine.critic.optimizer.load_state_dict(sb3.critic.optimizer.state_dict())
+    mine.replay_buffer = copy.deepcopy(sb3.replay_buffer)
+    before = {k: v.clone() for k, v in sb3.policy.state_dict().items()}
+    np_state = np.random.get_state()  # noqa: NPY002 (SB3 samples from the global stream)
+    with torch.random.fork_rng():
+        for model in (sb3, mine):
+            torch.manual_seed(0)
+            np.random.seed(0)  # noqa: NPY002
+            model.train(gradient_steps=5, batch_size=32)
+    np.random.set_state(np_state)  # noqa: NPY002
+    ours, theirs = mine.policy.state_dict(), sb3.policy.state_dict()
+    assert ours.keys() == theirs.keys()
+    for key in theirs:
+        torch.testing.assert_close(ours[key], theirs[key], rtol=1e-5, atol=1e-6, msg=key)
+    assert not torch.equal(theirs["critic.qf0.0.weight"], before["critic.qf0.0.weight"])
+    assert not torch.equal(theirs["actor.mu.weight"], before["actor.mu.weight"])
+
+
+def test_per_drone_critics_train_one_column_per_drone():
+    solver = make_solver(per_drone_critics=True)
+    eta, wc = random_weights(np.random.default_rng(2))
+    solver.solve(eta, wc, 300, n_eval_episodes=1)
+    assert solver.model._n_updates > 0
+    batch = solver.replay_buffer.sample(16)
+    for q in solver.model.critic(batch.observations, batch.actions):
+        assert q.shape == (16, 2) and torch.isfinite(q).all()
+    with pytest.raises(ValueError, match="per_drone_critics must be a bool"):
+        make_solver(per_drone_critics=1)
+
+    class Anonymous(torch.nn.Module):  # a basis that cannot say whose features are whose
+        dim = 4
+
+        def forward(self, states, actions=None):
+            return torch.zeros(*np.shape(states)[:-2], 4, dtype=torch.float64)
+
+    with pytest.raises(ValueError, match="drone_shares"):
+        make_solver(per_drone_critics=True, reward_basis=Anonymous())
+    with pytest.raises(ValueError, match="fixed ent_coef"):
+        DecomposedSAC("MlpPolicy", solver.vec_env, ent_coef="auto",
+                      policy_kwargs={"n_rewards": 2})

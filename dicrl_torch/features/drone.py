@@ -77,6 +77,22 @@ class DroneFeatureBasis(nn.Module):
     def compute(self, states: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def drone_shares(self) -> torch.Tensor:
+        """``[l, N_DRONES]`` float64: how much of each feature's reward belongs to each
+        drone. A feature named ``drone<i>/...`` is drone ``i``'s alone (a one-hot row);
+        any other (the proximity) is shared equally (``1 / N_DRONES`` each). Rows sum to
+        1, so the per-drone rewards of a per-drone critic add up to the joint reward."""
+        shares = torch.full((self.dim, N_DRONES), 1.0 / N_DRONES, dtype=torch.float64)
+        for j, name in enumerate(self.names):
+            owner = name.split("/", 1)[0]
+            if owner.startswith("drone") and owner[5:].isdigit():
+                if int(owner[5:]) >= N_DRONES:
+                    raise ValueError(f"{type(self).__name__}: feature {name!r} names a drone "
+                                     f"beyond the arena's {N_DRONES}.")
+                shares[j] = 0.0
+                shares[j, int(owner[5:])] = 1.0
+        return shares
+
     def forward(self, states: Any, actions: Any = None) -> torch.Tensor:
         """Features of joint states.
 

@@ -77,6 +77,7 @@ from dicrl_torch.envs.drones import (
     door_centres,
     joint_obs_to_state,
 )
+from dicrl_torch.solvers.decomposed_sac import DecomposedSAC
 
 __all__ = [
     "BoxScaler",
@@ -166,6 +167,23 @@ def _basis_dim(basis: Any, name: str) -> int:
     return int(basis.dim)
 
 
+def _drone_shares(basis: nn.Module, name: str) -> np.ndarray:
+    """``[l, N_DRONES]`` per-drone shares of a basis's features (``drone_shares()``)."""
+    if not callable(getattr(basis, "drone_shares", None)):
+        raise ValueError(
+            f"{name} {type(basis).__name__} has no drone_shares(): per-drone critics need to "
+            f"know which drone each feature belongs to; subclass DroneFeatureBasis or set "
+            f"per_drone_critics=False."
+        )
+    shares = np.asarray(torch.as_tensor(basis.drone_shares()), dtype=np.float64)
+    l = _basis_dim(basis, name)
+    if shares.shape != (l, N_DRONES) or not np.allclose(shares.sum(1), 1.0) \
+            or (shares < 0).any():
+        raise ValueError(f"{name}.drone_shares() must be [{l}, {N_DRONES}] non-negative rows "
+                         f"summing to 1, got shape {shares.shape}.")
+    return shares
+
+
 def _features(basis: nn.Module, states: np.ndarray) -> np.ndarray:
     """``basis`` on float64 states ``[..., 2, 4]`` -> float64 numpy ``[..., l]``."""
     with torch.no_grad():
@@ -237,7 +255,9 @@ class FeatureReplayBuffer(ReplayBuffer):
     reward SB3's ``add`` receives is ignored.
 
     :meth:`sample` returns rewards ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` from the weights
-    of the last :meth:`set_weights`, computed in float64 then cast to float32. After
+    of the last :meth:`set_weights`, computed in float64 then cast to float32: ``[B, 1]``,
+    or with ``per_drone`` ``[B, N_DRONES]``, each drone's share of that sum (the bases'
+    ``drone_shares()``; the shared proximity split equally), for a per-drone critic. After
     :meth:`set_demonstrations`, a fixed share of every batch is drawn from the learner's
     own demonstrated transitions, relabelled the same way.
 
@@ -251,6 +271,8 @@ class FeatureReplayBuffer(ReplayBuffer):
         absorbing: treat terminal states as absorbing.
         feature_dtype: storage dtype of the features (float32 halves the memory of
             float64; indicator features are exact either way).
+        per_drone: sample one reward column per drone (the bases must give
+            ``drone_shares()``).
     """
 
     def __init__(
@@ -268,6 +290,7 @@ class FeatureReplayBuffer(ReplayBuffer):
         gamma: float,
         absorbing: bool = True,
         feature_dtype: Any = np.float32,
+        per_drone: bool = False,
     ) -> None:
         if optimize_memory_usage:
             raise ValueError(
@@ -281,6 +304,14 @@ class FeatureReplayBuffer(ReplayBuffer):
         self.l_c = _basis_dim(cost_basis, "cost_basis")
         self.gamma = _check_gamma(gamma)
         self.absorbing = bool(absorbing)
+        if not isinstance(per_drone, bool):
+            raise ValueError(f"per_drone must be a bool, got {per_drone!r}.")
+        # [l, G] share of each feature's reward per reward column (G = 1: the joint reward).
+        self.shares: tuple[np.ndarray, np.ndarray] | None = None
+        if per_drone:
+            self.shares = (_drone_shares(reward_basis, "reward_basis"),
+                           _drone_shares(cost_basis, "cost_basis"))
+        self.n_rewards = N_DRONES if per_drone else 1
         shape = (self.buffer_size, self.n_envs)
         self.next_states = np.zeros((*shape, *STATE_SHAPE), dtype=np.float64)
         self.reward_features = np.zeros((*shape, self.l_r), dtype=feature_dtype)
@@ -328,21 +359,31 @@ class FeatureReplayBuffer(ReplayBuffer):
         super().add(obs, next_obs, action, np.zeros_like(reward, dtype=np.float32), done, infos)
 
     def compute_rewards(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
-        """``[B]`` float64 rewards of stored transitions under the current weights."""
+        """``[B]`` float64 (joint) rewards of stored transitions under the current weights."""
+        return self._stored_rewards(batch_inds, env_indices).sum(-1)
+
+    def _stored_rewards(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
+        """``[B, n_rewards]`` float64 rewards of stored transitions (see :meth:`_relabel`)."""
         return self._relabel(self.reward_features[batch_inds, env_indices],
                              self.cost_features[batch_inds, env_indices],
                              self.reward_scale[batch_inds, env_indices])
 
     def _relabel(self, phi_r: np.ndarray, phi_c: np.ndarray, scale: np.ndarray) -> np.ndarray:
-        """``[B]`` float64 ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` under the current weights."""
+        """``[B, n_rewards]`` float64 ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` under the
+        current weights, split into per-drone shares when ``per_drone``."""
         if self.reward_weights is None:
             raise RuntimeError(
                 "FeatureReplayBuffer has no weights yet; call set_weights(reward_weights, "
                 "multiplier, cost_weights) before sampling."
             )
-        r = (phi_r.astype(np.float64) @ self.reward_weights
-             + self.multiplier * (phi_c.astype(np.float64) @ self.cost_weights))
-        return scale * r
+        phi_r, phi_c = phi_r.astype(np.float64), phi_c.astype(np.float64)
+        if self.shares is None:
+            r = phi_r @ self.reward_weights + self.multiplier * (phi_c @ self.cost_weights)
+            return (scale * r)[:, None]
+        share_r, share_c = self.shares
+        r = (phi_r @ (self.reward_weights[:, None] * share_r)
+             + self.multiplier * (phi_c @ (self.cost_weights[:, None] * share_c)))
+        return scale[:, None] * r
 
     def set_demonstrations(self, demos: DroneDemonstrations | None, fraction: float) -> None:
         """Mix demonstrated transitions into every batch (``None`` removes them).
@@ -399,10 +440,11 @@ class FeatureReplayBuffer(ReplayBuffer):
     def _samples(self, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray,
                  dones: np.ndarray, rewards: np.ndarray,
                  env: VecNormalize | None) -> ReplayBufferSamples:
-        """SB3's batch from ``[B, ...]`` arrays: normalised, float32 rewards ``[B, 1]``."""
+        """SB3's batch from ``[B, ...]`` arrays: normalised, float32 rewards
+        ``[B, n_rewards]``."""
         data = (self._normalize_obs(obs, env), actions, self._normalize_obs(next_obs, env),
                 dones.reshape(-1, 1),
-                self._normalize_reward(rewards.astype(np.float32).reshape(-1, 1), env))
+                self._normalize_reward(rewards.astype(np.float32), env))
         return ReplayBufferSamples(*tuple(map(self.to_torch, data)))
 
     def _get_samples(self, batch_inds: np.ndarray,
@@ -417,7 +459,7 @@ class FeatureReplayBuffer(ReplayBuffer):
             self.actions[batch_inds, env_indices, :],
             self.next_observations[batch_inds, env_indices, :],
             self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices]),
-            self.compute_rewards(batch_inds, env_indices), env)
+            self._stored_rewards(batch_inds, env_indices), env)
 
 
 # ----------------------------------------------------------------------- the result
@@ -573,6 +615,9 @@ class SACConstrainedSolver:
             :meth:`set_demonstrations` (none are by default), in ``[0, 1)``.
         scale_observations: feed actor and critics observations mapped onto ``[-1, 1]``
             by the observation space's bounds (:class:`BoxScaler`).
+        per_drone_critics: critics with one soft-Q column per drone, each trained on that
+            drone's share of the reward (:mod:`~dicrl_torch.solvers.decomposed_sac`; the
+            fixed point is plain SAC's).
         sac_kwargs: further keyword arguments for ``stable_baselines3.SAC``.
     """
 
@@ -601,6 +646,7 @@ class SACConstrainedSolver:
         feature_dtype: Any = np.float32,
         demo_fraction: float = 0.0,
         scale_observations: bool = False,
+        per_drone_critics: bool = False,
         sac_kwargs: dict[str, Any] | None = None,
     ) -> None:
         self.demo_fraction = _check_fraction(demo_fraction, "demo_fraction")
@@ -667,13 +713,20 @@ class SACConstrainedSolver:
                 raise ValueError("scale_observations=True sets the features extractor; drop "
                                  "features_extractor_class from sac_kwargs['policy_kwargs'].")
             policy_kwargs["features_extractor_class"] = BoxScaler
+        if not isinstance(per_drone_critics, bool):
+            raise ValueError(f"per_drone_critics must be a bool, got {per_drone_critics!r}.")
+        self.per_drone_critics = per_drone_critics
+        algorithm = SAC
+        if per_drone_critics:
+            algorithm = DecomposedSAC
+            policy_kwargs["n_rewards"] = N_DRONES
         # Even building the vec env draws from the global numpy stream (SB3): all of it
         # happens on the solver's private streams.
         with self._private_rng():
             self.vec_env = make_vec_env(JointDroneEnv, n_envs=self.n_envs,
                                         env_kwargs=self.env_kwargs, vec_env_cls=DummyVecEnv)
             self.vec_env.seed(self.seed)  # used at the first reset, inside learn()
-            self.model = SAC(
+            self.model = algorithm(
                 "MlpPolicy", self.vec_env, learning_rate=learning_rate,
                 buffer_size=buffer_size, learning_starts=learning_starts,
                 batch_size=batch_size, tau=tau, gamma=self.gamma, train_freq=train_freq,
@@ -681,7 +734,8 @@ class SACConstrainedSolver:
                 replay_buffer_class=FeatureReplayBuffer,
                 replay_buffer_kwargs={"reward_basis": reward_basis, "cost_basis": cost_basis,
                                       "gamma": self.gamma, "absorbing": self.absorbing,
-                                      "feature_dtype": feature_dtype},
+                                      "feature_dtype": feature_dtype,
+                                      "per_drone": per_drone_critics},
                 policy_kwargs=policy_kwargs, device=self.device, seed=None, verbose=0,
                 **kwargs,
             )

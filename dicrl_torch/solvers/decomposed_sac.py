@@ -1,0 +1,125 @@
+"""SAC with a reward-decomposed critic: one soft-Q column per drone.
+
+The joint reward of the drone arena is a sum of per-drone parts, ``r = Σ_g r_g``
+(:class:`~dicrl_torch.solvers.sac.FeatureReplayBuffer` with ``per_drone=True`` samples
+them as ``[B, G]``; a shared feature such as the proximity is split equally). Each critic
+here outputs ``[B, G]`` and column ``g`` is trained on its own part,
+
+    Q_g(s, a) = r_g + γ E[Q_g(s', a') − (α / G) ln π(a' | s')],
+
+so ``Σ_g Q_g`` satisfies the joint soft Bellman equation: the fixed point, and the actor's
+objective ``E[α ln π(a | s) − Σ_g Q_g(s, a)]``, are plain SAC's. What changes is the
+regression: one drone's return is no longer noise in the target of the other's, which is
+what a joint critic has to average out when only one drone's action matters for a cost.
+The twin-critic minimum is taken per column (a lower bound of the minimum of the sums).
+
+With ``G = 1`` :meth:`DecomposedSAC.train` is SB3's ``SAC.train`` for a fixed temperature
+(``tests/test_sac_solver.py`` compares their updates).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3 import SAC
+from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, create_mlp
+from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.sac.policies import SACPolicy
+from torch import nn
+
+__all__ = ["DecomposedCritic", "DecomposedSAC", "DecomposedSACPolicy"]
+
+
+class DecomposedCritic(ContinuousCritic):
+    """SB3's twin critic with ``n_rewards`` outputs per network: ``forward`` gives a tuple
+    of ``n_critics`` tensors ``[B, n_rewards]``."""
+
+    def __init__(self, observation_space: spaces.Space, action_space: spaces.Box,
+                 net_arch: list[int], features_extractor: BaseFeaturesExtractor,
+                 features_dim: int, activation_fn: type[nn.Module] = nn.ReLU,
+                 *args: Any, n_rewards: int, **kwargs: Any) -> None:
+        super().__init__(observation_space, action_space, net_arch, features_extractor,
+                         features_dim, activation_fn, *args, **kwargs)
+        if isinstance(n_rewards, bool) or not isinstance(n_rewards, int) or n_rewards < 1:
+            raise ValueError(f"n_rewards must be a positive int, got {n_rewards!r}.")
+        self.n_rewards = n_rewards
+        # Replace SB3's scalar heads by heads of n_rewards outputs (same layout and names).
+        q_in = features_dim + get_action_dim(self.action_space)
+        self.q_networks = []
+        for idx in range(self.n_critics):
+            q_net = nn.Sequential(*create_mlp(q_in, n_rewards, net_arch, activation_fn))
+            self.add_module(f"qf{idx}", q_net)
+            self.q_networks.append(q_net)
+
+
+class DecomposedSACPolicy(SACPolicy):
+    """SB3's ``SACPolicy`` whose critics are :class:`DecomposedCritic` (``n_rewards``
+    outputs each)."""
+
+    def __init__(self, *args: Any, n_rewards: int = 1, **kwargs: Any) -> None:
+        # make_critic runs inside SACPolicy.__init__, so the width must be known first.
+        object.__setattr__(self, "n_rewards", n_rewards)
+        super().__init__(*args, **kwargs)
+
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None
+                    ) -> DecomposedCritic:
+        kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        return DecomposedCritic(**kwargs, n_rewards=self.n_rewards).to(self.device)
+
+
+class DecomposedSAC(SAC):
+    """SB3 SAC with a fixed temperature whose critics learn one soft-Q column per reward
+    column of the replay buffer's samples (module docstring). Give it
+    ``policy_kwargs={"n_rewards": G}`` and a buffer whose rewards are ``[B, G]``."""
+
+    policy_aliases = {"MlpPolicy": DecomposedSACPolicy}  # noqa: RUF012 (SB3's class dict)
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        if self.ent_coef_optimizer is not None:
+            raise ValueError("DecomposedSAC needs a fixed ent_coef (a number), not 'auto'.")
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        self.policy.set_training_mode(True)
+        self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+        alpha = self.ent_coef_tensor
+        critic_losses, actor_losses = [], []
+        for step in range(gradient_steps):
+            data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
+            if self.use_sde:
+                self.actor.reset_noise()
+            # Drawn before the target's next actions, in SB3's order (same random numbers).
+            actions_pi, log_prob = self.actor.action_log_prob(data.observations)
+            log_prob = log_prob.reshape(-1, 1)
+            n_rewards = data.rewards.shape[1]
+            with torch.no_grad():
+                next_actions, next_log_prob = self.actor.action_log_prob(data.next_observations)
+                next_q = torch.stack(self.critic_target(data.next_observations, next_actions))
+                next_q = next_q.amin(0) - (alpha / n_rewards) * next_log_prob.reshape(-1, 1)
+                target = data.rewards + (1 - data.dones) * self.gamma * next_q  # [B, G]
+            q = self.critic(data.observations, data.actions)
+            critic_loss = 0.5 * sum(((qk - target) ** 2).sum(-1).mean() for qk in q)
+            self.critic.optimizer.zero_grad()
+            critic_loss.backward()
+            self.critic.optimizer.step()
+
+            q_pi = torch.stack(self.critic(data.observations, actions_pi)).amin(0)  # [B, G]
+            actor_loss = (alpha * log_prob - q_pi.sum(-1, keepdim=True)).mean()
+            self.actor.optimizer.zero_grad()
+            actor_loss.backward()
+            self.actor.optimizer.step()
+
+            if step % self.target_update_interval == 0:
+                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+                polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
+            critic_losses.append(critic_loss.item())
+            actor_losses.append(actor_loss.item())
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/actor_loss", float(np.mean(actor_losses)))
+        self.logger.record("train/critic_loss", float(np.mean(critic_losses)))
