@@ -173,11 +173,14 @@ def run_icrl(name: str, trainer: DICRL, cfg, p: DroneProblem, logger, run_of,
         # The learned policy is the inner problem's solution at the learned (η̄, ω_c): a
         # last solve, `solver.final_timesteps` long, brings SAC closer to it.
         solver = trainer.learner_model.solvers[i]
-        solver.solve(trainer.state.eta_bar[i], trainer.state.cost_weights[i],
-                     int(cfg.solver.final_timesteps))
+        kept = solver.solve_keeping_best(
+            trainer.state.eta_bar[i], trainer.state.cost_weights[i],
+            int(cfg.solver.final_timesteps), checks=int(cfg.solver.final_checks),
+            deterministic=cfg.solver.eval_action == "mean")
         row, paths = evaluate_true_game(solver, cfg)
         row.update(constraint_row(mask, p), multiplier=float(trainer.state.eta_bar[i, -1]),
-                   reward_weights=trainer.state.eta_bar[i, :-1].tolist())
+                   reward_weights=trainer.state.eta_bar[i, :-1].tolist(),
+                   policy_timesteps=kept.timesteps)
         label = f"{name} learner {v + 1}" if trainer.n_learners > 1 else name
         figure(label, mask, paths, out, logger, run_of(v), a.outer_iterations)
         for key in ("SR", "CVR"):

@@ -174,6 +174,8 @@ DRONE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
      "'mean' or 'sampled' (the actions of the table's SR and CVR rollouts)", "mean"),
     ("solver.final_timesteps", int, _ge(1),
      "an int >= 1 (SAC steps of the last solve, on the learned (η̄, ω_c))", "2000"),
+    ("solver.final_checks", int, _ge(1),
+     "an int >= 1 (scored chunks of the last solve; 1: no selection)", "1"),
     ("solver.warmup_timesteps", int, _ge(0), "an int >= 0 (SAC pre-training steps)",
      "30000"),
     ("solver.n_eval_episodes", int, _ge(1), "an int >= 1 (rollouts per estimate)", "10"),
@@ -195,8 +197,8 @@ KNOWN_KEYS = {
          "checkpoint_every", "resume", "baselines"},
     "env": {"layout", "model", "true_reward_weights", "arena"},
     # the drones' solver node (the grid's has a _target_, checked against its signature)
-    "solver": {"timesteps", "warmup_timesteps", "final_timesteps", "n_eval_episodes",
-               "eval_action", "solver"},
+    "solver": {"timesteps", "warmup_timesteps", "final_timesteps", "final_checks",
+               "n_eval_episodes", "eval_action", "solver"},
     "features": {"reward", "cost"},
     "graph": {"inner", "outer"},
     "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",
@@ -298,6 +300,11 @@ def check_config(cfg: DictConfig) -> None:
         problems.append(f"baselines.run={_plain(run)} is invalid: it must be a list of "
                         f"distinct names among {names} (the rows to add; [] for "
                         f"none); set e.g. {example} or baselines=none.")
+    checks = OmegaConf.select(cfg, "solver.final_checks", default=None)
+    final = OmegaConf.select(cfg, "solver.final_timesteps", default=None)
+    if drones and _type_ok(checks, int) and _type_ok(final, int) and 1 <= final < checks:
+        problems.append(f"solver.final_checks={checks} exceeds solver.final_timesteps={final}: "
+                        f"each scored chunk needs at least one step; lower final_checks.")
     if drones and not is_simulated(cfg):
         problems.append("comm=distributed is not supported for the drone arena yet (its SAC "
                         "solvers are not checkpointed across processes); use comm=simulated.")

@@ -471,3 +471,37 @@ def test_per_drone_critics_train_one_column_per_drone():
     with pytest.raises(ValueError, match="fixed ent_coef"):
         DecomposedSAC("MlpPolicy", solver.vec_env, ent_coef="auto",
                       policy_kwargs={"n_rewards": 2})
+
+
+# ------------------------------------------------------------ keeping the best iterate
+def test_solve_keeping_best_ends_on_the_best_scored_chunk():
+    eta, wc = random_weights(np.random.default_rng(4))
+    kept = make_solver(seed=6, learning_starts=50)
+    best = kept.solve_keeping_best(eta, wc, 300, checks=3, n_eval_episodes=3,
+                                   deterministic=True)
+    # The same seed stepped by hand: chunk by chunk, with the same rollouts.
+    manual = make_solver(seed=6, learning_starts=50)
+    scores, states = [], []
+    for steps in (100, 100, 100):
+        manual._train(eta, wc, steps)
+        sol = manual.evaluate(3, deterministic=True)
+        per = (sol.reward_sums.numpy() @ eta[:-1]
+               + eta[-1] * (sol.cost_sums.numpy() @ wc))
+        scores.append(float(per.mean()))
+        states.append(copy.deepcopy(manual.model.policy.state_dict()))
+    assert best.penalised_return()[0] == pytest.approx(max(scores), rel=1e-12)
+    assert len(set(scores)) == 3  # the chunks' policies differ
+    assert int(np.argmax(scores)) < 2  # (this seed) the best is not the last: restored
+    winner = states[int(np.argmax(scores))]
+    for key, value in kept.model.policy.state_dict().items():
+        assert torch.equal(value, winner[key]), key
+    # One check is solve(): the same networks.
+    once, plain = make_solver(seed=6), make_solver(seed=6)
+    once.solve_keeping_best(eta, wc, 150, checks=1, n_eval_episodes=1)
+    plain.solve(eta, wc, 150, n_eval_episodes=1)
+    for key, value in plain.model.policy.state_dict().items():
+        assert torch.equal(value, once.model.policy.state_dict()[key]), key
+    with pytest.raises(ValueError, match="checks must be a positive int"):
+        kept.solve_keeping_best(eta, wc, 10, checks=0)
+    with pytest.raises(ValueError, match="timesteps must be an int >= checks=4"):
+        kept.solve_keeping_best(eta, wc, 3, checks=4)

@@ -537,6 +537,18 @@ class SACSolution:
         mean, se = _mean_se(self.cost_sums @ w)
         return float(mean), float(se)
 
+    def penalised_return(self) -> tuple[float, float]:
+        """The learned objective ``ω_r · μ_r + λ ω_c · μ_c`` under the weights the policy
+        was trained for (the discounted return of its reward, without the entropy), and
+        its standard error over episodes."""
+        if self.eta is None or self.cost_weights is None:
+            raise ValueError("This solution stores no (eta, cost_weights): it was not "
+                             "trained for a reward; use solver.solve(...) first.")
+        per = (self.reward_sums @ self.eta[:-1]
+               + self.eta[-1] * (self.cost_sums @ self.cost_weights))  # [n]
+        mean, se = _mean_se(per)
+        return float(mean), float(se)
+
     @property
     def success_rate(self) -> float:
         """Fraction of drones that reached their door without a violation (SR)."""
@@ -820,13 +832,56 @@ class SACConstrainedSolver:
         Returns:
             The :class:`SACSolution` of the policy after training.
         """
+        self._train(eta, cost_weights, timesteps)
+        return self.evaluate(n_eval_episodes)
+
+    def solve_keeping_best(self, eta: Any, cost_weights: Any, timesteps: int, *, checks: int,
+                           n_eval_episodes: int | None = None,
+                           deterministic: bool = False) -> SACSolution:
+        """Train ``timesteps`` in ``checks`` near-equal chunks and end with the networks
+        whose policy scored the highest learned objective
+        (:meth:`SACSolution.penalised_return`) after any chunk.
+
+        SAC's iterates can swing between behaviours from one chunk to the next (README,
+        "Drones"); this keeps the best one seen, as an evaluation callback that saves the
+        best model does. The score is the learner's own: its ``(η, ω_c)``, rolled out in
+        the solver's game (the nominal one by default); no true constraint is consulted.
+
+        Args:
+            eta, cost_weights, n_eval_episodes: as :meth:`solve` (rollouts per score).
+            timesteps: env steps in all (>= ``checks``).
+            checks: number of chunks, each followed by a score; 1 is :meth:`solve`.
+            deterministic: score the mean-action policy (how it is deployed).
+
+        Returns:
+            The best chunk's :class:`SACSolution` (its rollouts gave the score).
+        """
+        if not _is_int(checks) or checks < 1:
+            raise ValueError(f"checks must be a positive int, got {checks!r}.")
+        if not _is_int(timesteps) or timesteps < checks:
+            raise ValueError(f"timesteps must be an int >= checks={checks}, got "
+                             f"{timesteps!r}.")
+        chunks = np.diff(np.linspace(0, int(timesteps), checks + 1).round().astype(int))
+        best, best_score, best_state = None, -math.inf, None
+        for steps in chunks:
+            self._train(eta, cost_weights, int(steps))
+            solution = self.evaluate(n_eval_episodes, deterministic=deterministic)
+            score = solution.penalised_return()[0]
+            if best is None or score > best_score:
+                best, best_score = solution, score
+                best_state = copy.deepcopy(self.model.policy.state_dict())
+        if best is not solution:
+            self.model.policy.load_state_dict(best_state)
+        return best
+
+    def _train(self, eta: Any, cost_weights: Any, timesteps: int) -> None:
+        """Set the weights (relabelling the buffer) and continue SAC for ``timesteps``."""
         if not _is_int(timesteps) or timesteps < 0:
             raise ValueError(f"timesteps must be an int >= 0, got {timesteps!r}.")
         self.set_weights(eta, cost_weights)
         if timesteps > 0:
             with self._private_rng():
                 self.model.learn(total_timesteps=int(timesteps), reset_num_timesteps=False)
-        return self.evaluate(n_eval_episodes)
 
     def _policy_params(self, obs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and log-std ``[B, 4]`` (pre-squash) of the actor at observations."""
