@@ -180,11 +180,14 @@ def run_icrl(name: str, trainer: DICRL, cfg, p: DroneProblem, logger, run_of,
         row, paths = evaluate_true_game(solver, cfg)
         row.update(constraint_row(mask, p), multiplier=float(trainer.state.eta_bar[i, -1]),
                    reward_weights=trainer.state.eta_bar[i, :-1].tolist(),
-                   policy_timesteps=kept.timesteps)
+                   policy_timesteps=kept.timesteps,
+                   final_checks=[[int(t), float(v)] for t, v in solver.last_checks])
         label = f"{name} learner {v + 1}" if trainer.n_learners > 1 else name
         figure(label, mask, paths, out, logger, run_of(v), a.outer_iterations)
         for key in ("SR", "CVR"):
             logger.scalar(run_of(v), f"eval/{key}", row[key], a.outer_iterations)
+        for timesteps, score in solver.last_checks:  # the last solve's learned objective
+            logger.scalar(run_of(v), "final/penalised_return", score, timesteps)
         rows.append(row)
     return rows
 

@@ -490,6 +490,8 @@ def test_solve_keeping_best_ends_on_the_best_scored_chunk():
         scores.append(float(per.mean()))
         states.append(copy.deepcopy(manual.model.policy.state_dict()))
     assert best.penalised_return()[0] == pytest.approx(max(scores), rel=1e-12)
+    assert [t for t, _ in kept.last_checks] == [100, 200, 300]
+    np.testing.assert_allclose([v for _, v in kept.last_checks], scores, rtol=1e-12)
     assert len(set(scores)) == 3  # the chunks' policies differ
     assert int(np.argmax(scores)) < 2  # (this seed) the best is not the last: restored
     winner = states[int(np.argmax(scores))]

@@ -758,6 +758,8 @@ class SACConstrainedSolver:
         self.model.action_space.seed(self.seed)
         self.eta: np.ndarray | None = None
         self.cost_weights: np.ndarray | None = None
+        self.last_checks: list[tuple[int, float]] = []
+        """``(timesteps, score)`` per chunk of the last :meth:`solve_keeping_best`."""
 
     # ---- randomness ---------------------------------------------------------------
     @contextlib.contextmanager
@@ -854,7 +856,8 @@ class SACConstrainedSolver:
             deterministic: score the mean-action policy (how it is deployed).
 
         Returns:
-            The best chunk's :class:`SACSolution` (its rollouts gave the score).
+            The best chunk's :class:`SACSolution` (its rollouts gave the score). Every
+            chunk's ``(timesteps, score)`` is left in ``self.last_checks``.
         """
         if not _is_int(checks) or checks < 1:
             raise ValueError(f"checks must be a positive int, got {checks!r}.")
@@ -863,10 +866,12 @@ class SACConstrainedSolver:
                              f"{timesteps!r}.")
         chunks = np.diff(np.linspace(0, int(timesteps), checks + 1).round().astype(int))
         best, best_score, best_state = None, -math.inf, None
+        self.last_checks = []
         for steps in chunks:
             self._train(eta, cost_weights, int(steps))
             solution = self.evaluate(n_eval_episodes, deterministic=deterministic)
             score = solution.penalised_return()[0]
+            self.last_checks.append((self.num_timesteps, score))
             if best is None or score > best_score:
                 best, best_score = solution, score
                 best_state = copy.deepcopy(self.model.policy.state_dict())
