@@ -176,18 +176,21 @@ def run_icrl(name: str, trainer: DICRL, cfg, p: DroneProblem, logger, run_of,
         kept = solver.solve_keeping_best(
             trainer.state.eta_bar[i], trainer.state.cost_weights[i],
             int(cfg.solver.final_timesteps), checks=int(cfg.solver.final_checks),
-            deterministic=cfg.solver.eval_action == "mean")
+            deterministic=cfg.solver.eval_action == "mean",
+            constraints=mask if cfg.solver.final_score == "learned_success" else None)
         row, paths = evaluate_true_game(solver, cfg)
         row.update(constraint_row(mask, p), multiplier=float(trainer.state.eta_bar[i, -1]),
                    reward_weights=trainer.state.eta_bar[i, :-1].tolist(),
                    policy_timesteps=kept.timesteps,
-                   final_checks=[[int(t), float(v)] for t, v in solver.last_checks])
+                   final_checks=solver.last_checks)
         label = f"{name} learner {v + 1}" if trainer.n_learners > 1 else name
         figure(label, mask, paths, out, logger, run_of(v), a.outer_iterations)
         for key in ("SR", "CVR"):
             logger.scalar(run_of(v), f"eval/{key}", row[key], a.outer_iterations)
-        for timesteps, score in solver.last_checks:  # the last solve's learned objective
-            logger.scalar(run_of(v), "final/penalised_return", score, timesteps)
+        for check in solver.last_checks:  # the last solve's chunk scores
+            for key in ("penalised_return", "success_under_constraints"):
+                if check[key] is not None:
+                    logger.scalar(run_of(v), f"final/{key}", check[key], check["timesteps"])
         rows.append(row)
     return rows
 

@@ -23,6 +23,7 @@ from dicrl_torch.solvers.sac import (
     BoxScaler,
     FeatureReplayBuffer,
     SACConstrainedSolver,
+    SACSolution,
     discounted_demo_feature_sums,
     joint_obs_from_states,
 )
@@ -490,8 +491,10 @@ def test_solve_keeping_best_ends_on_the_best_scored_chunk():
         scores.append(float(per.mean()))
         states.append(copy.deepcopy(manual.model.policy.state_dict()))
     assert best.penalised_return()[0] == pytest.approx(max(scores), rel=1e-12)
-    assert [t for t, _ in kept.last_checks] == [100, 200, 300]
-    np.testing.assert_allclose([v for _, v in kept.last_checks], scores, rtol=1e-12)
+    assert [c["timesteps"] for c in kept.last_checks] == [100, 200, 300]
+    np.testing.assert_allclose([c["penalised_return"] for c in kept.last_checks], scores,
+                               rtol=1e-12)
+    assert all(c["success_under_constraints"] is None for c in kept.last_checks)
     assert len(set(scores)) == 3  # the chunks' policies differ
     assert int(np.argmax(scores)) < 2  # (this seed) the best is not the last: restored
     winner = states[int(np.argmax(scores))]
@@ -507,3 +510,28 @@ def test_solve_keeping_best_ends_on_the_best_scored_chunk():
         kept.solve_keeping_best(eta, wc, 10, checks=0)
     with pytest.raises(ValueError, match="timesteps must be an int >= checks=4"):
         kept.solve_keeping_best(eta, wc, 3, checks=4)
+
+
+def test_success_under_constraints_counts_each_drones_own_features():
+    """success_rate_under against a hand count over a solution with made-up rollouts."""
+    solver = make_solver()
+    n, l_c = 4, L_C
+    cost = torch.zeros(n, l_c, dtype=torch.float64)
+    cost[0, 45] = 0.3          # drone 0 entered its cell (5,4)
+    cost[1, 100 + 45] = 0.2    # drone 1 entered its cell (5,4)
+    cost[2, 200] = 0.1         # the drones came too close
+    reached = torch.tensor([[True, True], [True, False], [True, True], [True, True]])
+    sol = SACSolution(reward_sums=torch.zeros(n, L_R), cost_sums=cost,
+                      lengths=torch.full((n,), 10), reached=reached,
+                      violated=torch.zeros(n, 2, dtype=torch.bool), eta=None,
+                      cost_weights=None, timesteps=0, solver=solver)
+    mask = np.zeros(l_c, dtype=bool)
+    assert sol.success_rate_under(mask) == 7 / 8  # only the drone that did not arrive
+    mask[45] = True  # drone 0's (5,4): episode 0 loses drone 0
+    assert sol.success_rate_under(mask) == 6 / 8
+    mask[145] = True  # drone 1's (5,4): drone 1 of episode 1 had not arrived anyway
+    assert sol.success_rate_under(mask) == 6 / 8
+    mask[200] = True  # the proximity: both drones of episode 2
+    assert sol.success_rate_under(mask) == 4 / 8
+    with pytest.raises(ValueError, match="constraints must be"):
+        sol.success_rate_under(np.zeros(5, dtype=bool))

@@ -549,6 +549,22 @@ class SACSolution:
         mean, se = _mean_se(per)
         return float(mean), float(se)
 
+    def success_rate_under(self, constraints: Any) -> float:
+        """SR in the game whose constraints are ``constraints`` (``[l_c]`` bool over the
+        cost features, e.g. a learner's learned set): the fraction of drones that reached
+        their door without accruing any of those features that are theirs (per
+        ``drone_shares()``; a shared one, the proximity, counts for both). Computed from
+        this solution's rollouts (the solver's game: nominal by default)."""
+        if self.solver is None:
+            raise ValueError("This solution has no solver (its cost basis is needed).")
+        mask = torch.as_tensor(np.asarray(constraints, dtype=bool).reshape(-1))
+        if mask.shape != (self.cost_sums.shape[1],):
+            raise ValueError(f"constraints must be [{self.cost_sums.shape[1]}] bool, got "
+                             f"shape {tuple(mask.shape)}.")
+        owned = torch.as_tensor(_drone_shares(self.solver.cost_basis, "cost_basis") > 0)
+        entered = (self.cost_sums > 0)[:, :, None] & (mask[:, None] & owned)[None]
+        return float((self.reached & ~entered.any(1)).double().mean())
+
     @property
     def success_rate(self) -> float:
         """Fraction of drones that reached their door without a violation (SR)."""
@@ -758,8 +774,8 @@ class SACConstrainedSolver:
         self.model.action_space.seed(self.seed)
         self.eta: np.ndarray | None = None
         self.cost_weights: np.ndarray | None = None
-        self.last_checks: list[tuple[int, float]] = []
-        """``(timesteps, score)`` per chunk of the last :meth:`solve_keeping_best`."""
+        self.last_checks: list[dict[str, Any]] = []
+        """Per chunk of the last :meth:`solve_keeping_best`: its scores."""
 
     # ---- randomness ---------------------------------------------------------------
     @contextlib.contextmanager
@@ -838,11 +854,12 @@ class SACConstrainedSolver:
         return self.evaluate(n_eval_episodes)
 
     def solve_keeping_best(self, eta: Any, cost_weights: Any, timesteps: int, *, checks: int,
-                           n_eval_episodes: int | None = None,
-                           deterministic: bool = False) -> SACSolution:
+                           n_eval_episodes: int | None = None, deterministic: bool = False,
+                           constraints: Any = None) -> SACSolution:
         """Train ``timesteps`` in ``checks`` near-equal chunks and end with the networks
         whose policy scored the highest learned objective
-        (:meth:`SACSolution.penalised_return`) after any chunk.
+        (:meth:`SACSolution.penalised_return`) after any chunk; with ``constraints``, the
+        highest :meth:`SACSolution.success_rate_under` them first (ties: the objective).
 
         SAC's iterates can swing between behaviours from one chunk to the next (README,
         "Drones"); this keeps the best one seen, as an evaluation callback that saves the
@@ -854,10 +871,13 @@ class SACConstrainedSolver:
             timesteps: env steps in all (>= ``checks``).
             checks: number of chunks, each followed by a score; 1 is :meth:`solve`.
             deterministic: score the mean-action policy (how it is deployed).
+            constraints: ``[l_c]`` bool, the learner's constraint set (e.g. its
+                ``ω_c ≥ 0.5``), or None.
 
         Returns:
             The best chunk's :class:`SACSolution` (its rollouts gave the score). Every
-            chunk's ``(timesteps, score)`` is left in ``self.last_checks``.
+            chunk's ``{"timesteps", "penalised_return", "success_under_constraints"}``
+            (the last None without ``constraints``) is left in ``self.last_checks``.
         """
         if not _is_int(checks) or checks < 1:
             raise ValueError(f"checks must be a positive int, got {checks!r}.")
@@ -865,13 +885,17 @@ class SACConstrainedSolver:
             raise ValueError(f"timesteps must be an int >= checks={checks}, got "
                              f"{timesteps!r}.")
         chunks = np.diff(np.linspace(0, int(timesteps), checks + 1).round().astype(int))
-        best, best_score, best_state = None, -math.inf, None
+        best, best_score, best_state = None, (-math.inf, -math.inf), None
         self.last_checks = []
         for steps in chunks:
             self._train(eta, cost_weights, int(steps))
             solution = self.evaluate(n_eval_episodes, deterministic=deterministic)
-            score = solution.penalised_return()[0]
-            self.last_checks.append((self.num_timesteps, score))
+            objective = solution.penalised_return()[0]
+            success = None if constraints is None else solution.success_rate_under(constraints)
+            self.last_checks.append({"timesteps": self.num_timesteps,
+                                     "penalised_return": objective,
+                                     "success_under_constraints": success})
+            score = (0.0 if success is None else success, objective)
             if best is None or score > best_score:
                 best, best_score = solution, score
                 best_state = copy.deepcopy(self.model.policy.state_dict())
