@@ -84,13 +84,13 @@ class DroneFeatureBasis(nn.Module):
         1, so the per-drone rewards of a per-drone critic add up to the joint reward."""
         shares = torch.full((self.dim, N_DRONES), 1.0 / N_DRONES, dtype=torch.float64)
         for j, name in enumerate(self.names):
-            owner = name.split("/", 1)[0]
-            if owner.startswith("drone") and owner[5:].isdigit():
-                if int(owner[5:]) >= N_DRONES:
+            owner = name.split("/", 1)[0].removeprefix("drone")
+            if owner.isdigit():
+                if int(owner) >= N_DRONES:
                     raise ValueError(f"{type(self).__name__}: feature {name!r} names a drone "
                                      f"beyond the arena's {N_DRONES}.")
                 shares[j] = 0.0
-                shares[j, int(owner[5:])] = 1.0
+                shares[j, int(owner)] = 1.0
         return shares
 
     def forward(self, states: Any, actions: Any = None) -> torch.Tensor:

@@ -377,7 +377,7 @@ class FeatureReplayBuffer(ReplayBuffer):
                 "multiplier, cost_weights) before sampling."
             )
         phi_r, phi_c = phi_r.astype(np.float64), phi_c.astype(np.float64)
-        if self.shares is None:
+        if self.shares is None:  # the joint reward exactly as before (no [l, 1] matmul)
             r = phi_r @ self.reward_weights + self.multiplier * (phi_c @ self.cost_weights)
             return (scale * r)[:, None]
         share_r, share_c = self.shares
