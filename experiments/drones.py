@@ -176,6 +176,7 @@ def run_icrl(name: str, trainer: DICRL, cfg, p: DroneProblem, logger, run_of,
         kept = solver.solve_keeping_best(
             trainer.state.eta_bar[i], trainer.state.cost_weights[i],
             int(cfg.solver.final_timesteps), checks=int(cfg.solver.final_checks),
+            restarts=int(cfg.solver.final_restarts),
             deterministic=cfg.solver.eval_action == "mean",
             constraints=mask if cfg.solver.final_score == "learned_success" else None)
         row, paths = evaluate_true_game(solver, cfg)
@@ -187,10 +188,12 @@ def run_icrl(name: str, trainer: DICRL, cfg, p: DroneProblem, logger, run_of,
         figure(label, mask, paths, out, logger, run_of(v), a.outer_iterations)
         for key in ("SR", "CVR"):
             logger.scalar(run_of(v), f"eval/{key}", row[key], a.outer_iterations)
-        for check in solver.last_checks:  # the last solve's chunk scores
+        for check in solver.last_checks:  # the last solve's chunk scores, per restart
+            suffix = f"/restart{check['restart']}" if check["restart"] else ""
             for key in ("penalised_return", "success_under_constraints"):
                 if check[key] is not None:
-                    logger.scalar(run_of(v), f"final/{key}", check[key], check["timesteps"])
+                    logger.scalar(run_of(v), f"final/{key}{suffix}", check[key],
+                                  check["timesteps"])
         rows.append(row)
     return rows
 

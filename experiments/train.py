@@ -176,6 +176,8 @@ DRONE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
      "an int >= 1 (SAC steps of the last solve, on the learned (η̄, ω_c))", "2000"),
     ("solver.final_checks", int, _ge(1),
      "an int >= 1 (scored chunks of the last solve; 1: no selection)", "1"),
+    ("solver.final_restarts", int, _ge(1),
+     "an int >= 1 (independent continuations of the last solve; 1: the solver's own)", "1"),
     ("solver.final_score", str, lambda x: x in ("penalised_return", "learned_success"),
      "'penalised_return' or 'learned_success' (how the last solve's chunks are ranked)",
      "learned_success"),
@@ -201,7 +203,7 @@ KNOWN_KEYS = {
     "env": {"layout", "model", "true_reward_weights", "arena"},
     # the drones' solver node (the grid's has a _target_, checked against its signature)
     "solver": {"timesteps", "warmup_timesteps", "final_timesteps", "final_checks",
-               "final_score", "n_eval_episodes", "eval_action", "solver"},
+               "final_restarts", "final_score", "n_eval_episodes", "eval_action", "solver"},
     "features": {"reward", "cost"},
     "graph": {"inner", "outer"},
     "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",

@@ -176,6 +176,7 @@ def test_table2_config_is_checked():
                        ("solver.final_timesteps=0", "solver.final_timesteps=0 is invalid"),
                        ("solver.final_checks=0", "solver.final_checks=0 is invalid"),
                        ("solver.final_checks=9000", "exceeds solver.final_timesteps"),
+                       ("solver.final_restarts=0", "solver.final_restarts=0 is invalid"),
                        ("solver.final_score=best", "'penalised_return' or 'learned_success'"),
                        ("+solver.solver.ent_coeff=1", "did you mean 'ent_coef'")]:
         with pytest.raises(train.ConfigError, match=match):
@@ -184,7 +185,8 @@ def test_table2_config_is_checked():
 
 TINY = ["experiment=table2_quick", "env.arena.max_steps=20", "eval_episodes=2",
         "solver.warmup_timesteps=60", "solver.timesteps=20", "solver.n_eval_episodes=1",
-        "solver.final_checks=2", "solver.final_score=learned_success",
+        "solver.final_checks=2", "solver.final_restarts=2",
+        "solver.final_score=learned_success",
         "solver.solver.learning_starts=30", "solver.solver.batch_size=16",
         "solver.solver.net_arch=[16,16]", "algo.outer_iterations=1", "algo.inner_steps=2",
         "baselines.timesteps=20", "baselines.max_constraints=1", "logger=none"]

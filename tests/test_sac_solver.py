@@ -512,6 +512,39 @@ def test_solve_keeping_best_ends_on_the_best_scored_chunk():
         kept.solve_keeping_best(eta, wc, 3, checks=4)
 
 
+def test_solve_keeping_best_restarts_are_clones_scored_like_the_solver():
+    """restarts=2: the solver's own lineage, then a clone made before any chunk (seeded
+    from the solver's seed), stepped by hand; the best chunk of either is kept."""
+    eta, wc = random_weights(np.random.default_rng(5))
+    kept, manual = make_solver(seed=8, learning_starts=50), make_solver(seed=8,
+                                                                        learning_starts=50)
+    for solver in (kept, manual):
+        solver._train(eta, wc, 100)  # a state worth restarting from
+    best = kept.solve_keeping_best(eta, wc, 100, checks=2, restarts=2, n_eval_episodes=3,
+                                   deterministic=True)
+    twin = manual.clone(int(np.random.SeedSequence([8, 4]).generate_state(1)[0]))
+    scores, states = [], []
+    for solver in (manual, twin):
+        for _ in range(2):
+            solver._train(eta, wc, 50)
+            sol = solver.evaluate(3, deterministic=True)
+            scores.append(sol.penalised_return()[0])
+            states.append(copy.deepcopy(solver.model.policy.state_dict()))
+    assert [(c["restart"], c["timesteps"]) for c in kept.last_checks] == [
+        (0, 150), (0, 200), (1, 150), (1, 200)]
+    np.testing.assert_allclose([c["penalised_return"] for c in kept.last_checks], scores,
+                               rtol=1e-12)
+    assert scores[2:] != scores[:2]  # the clone's lineage is its own
+    assert best.penalised_return()[0] == pytest.approx(max(scores), rel=1e-12)
+    assert best.solver is kept
+    assert int(np.argmax(scores)) == 2  # (this seed) the clone's: its networks adopted
+    winner = states[int(np.argmax(scores))]
+    for key, value in kept.model.policy.state_dict().items():
+        assert torch.equal(value, winner[key]), key
+    with pytest.raises(ValueError, match="restarts must be a positive int"):
+        kept.solve_keeping_best(eta, wc, 10, checks=1, restarts=0)
+
+
 def test_success_under_constraints_counts_each_drones_own_features():
     """success_rate_under against a hand count over a solution with made-up rollouts."""
     solver = make_solver()

@@ -55,7 +55,7 @@ import copy
 import math
 import random
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -854,8 +854,8 @@ class SACConstrainedSolver:
         return self.evaluate(n_eval_episodes)
 
     def solve_keeping_best(self, eta: Any, cost_weights: Any, timesteps: int, *, checks: int,
-                           n_eval_episodes: int | None = None, deterministic: bool = False,
-                           constraints: Any = None) -> SACSolution:
+                           restarts: int = 1, n_eval_episodes: int | None = None,
+                           deterministic: bool = False, constraints: Any = None) -> SACSolution:
         """Train ``timesteps`` in ``checks`` near-equal chunks and end with the networks
         whose policy scored the highest learned objective
         (:meth:`SACSolution.penalised_return`) after any chunk; with ``constraints``, the
@@ -863,45 +863,62 @@ class SACConstrainedSolver:
 
         SAC's iterates can swing between behaviours from one chunk to the next (README,
         "Drones"); this keeps the best one seen, as an evaluation callback that saves the
-        best model does. The score is the learner's own: its ``(η, ω_c)``, rolled out in
-        the solver's game (the nominal one by default); no true constraint is consulted.
+        best model does. With ``restarts`` > 1 the same is done from this solver's current
+        state by ``restarts - 1`` clones as well (:meth:`clone`, seeds drawn from this
+        solver's), whose lineages diverge, and the best chunk of any of them is kept: more
+        independent chances when one lineage never settles. The score is the learner's
+        own: its ``(η, ω_c)``, rolled out in the solver's game (the nominal one by default);
+        no true constraint is consulted.
 
         Args:
             eta, cost_weights, n_eval_episodes: as :meth:`solve` (rollouts per score).
-            timesteps: env steps in all (>= ``checks``).
-            checks: number of chunks, each followed by a score; 1 is :meth:`solve`.
+            timesteps: env steps per restart (>= ``checks``).
+            checks: number of chunks per restart, each followed by a score; 1 (with one
+                restart) is :meth:`solve`.
+            restarts: independent continuations from the current state (1: this solver's).
             deterministic: score the mean-action policy (how it is deployed).
             constraints: ``[l_c]`` bool, the learner's constraint set (e.g. its
                 ``ω_c ≥ 0.5``), or None.
 
         Returns:
-            The best chunk's :class:`SACSolution` (its rollouts gave the score). Every
-            chunk's ``{"timesteps", "penalised_return", "success_under_constraints"}``
-            (the last None without ``constraints``) is left in ``self.last_checks``.
+            The best chunk's :class:`SACSolution` (its rollouts gave the score); this
+            solver's networks are left as that chunk's. Every chunk's ``{"restart",
+            "timesteps", "penalised_return", "success_under_constraints"}`` (the last None
+            without ``constraints``) is left in ``self.last_checks``.
         """
         if not _is_int(checks) or checks < 1:
             raise ValueError(f"checks must be a positive int, got {checks!r}.")
         if not _is_int(timesteps) or timesteps < checks:
             raise ValueError(f"timesteps must be an int >= checks={checks}, got "
                              f"{timesteps!r}.")
+        if not _is_int(restarts) or restarts < 1:
+            raise ValueError(f"restarts must be a positive int, got {restarts!r}.")
         chunks = np.diff(np.linspace(0, int(timesteps), checks + 1).round().astype(int))
+        # The clones start from the state before any chunk; their seeds come from this
+        # solver's seed, so a run is reproducible.
+        seeds = np.random.SeedSequence([self.seed, 4]).generate_state(restarts - 1)
+        lineages = [self] + [self.clone(int(s)) for s in seeds]
         best, best_score, best_state = None, (-math.inf, -math.inf), None
         self.last_checks = []
-        for steps in chunks:
-            self._train(eta, cost_weights, int(steps))
-            solution = self.evaluate(n_eval_episodes, deterministic=deterministic)
-            objective = solution.penalised_return()[0]
-            success = None if constraints is None else solution.success_rate_under(constraints)
-            self.last_checks.append({"timesteps": self.num_timesteps,
-                                     "penalised_return": objective,
-                                     "success_under_constraints": success})
-            score = (0.0 if success is None else success, objective)
-            if best is None or score > best_score:
-                best, best_score = solution, score
-                best_state = copy.deepcopy(self.model.policy.state_dict())
-        if best is not solution:
-            self.model.policy.load_state_dict(best_state)
-        return best
+        for r, solver in enumerate(lineages):
+            for steps in chunks:
+                solver._train(eta, cost_weights, int(steps))
+                solution = solver.evaluate(n_eval_episodes, deterministic=deterministic)
+                objective = solution.penalised_return()[0]
+                success = (None if constraints is None
+                           else solution.success_rate_under(constraints))
+                self.last_checks.append({"restart": r, "timesteps": solver.num_timesteps,
+                                         "penalised_return": objective,
+                                         "success_under_constraints": success})
+                score = (0.0 if success is None else success, objective)
+                if best is None or score > best_score:
+                    best, best_score = solution, score
+                    best_state = copy.deepcopy(solver.model.policy.state_dict())
+            if solver is not self:
+                solver.close()
+        self.model.policy.load_state_dict(best_state)
+        # A clone's solution: its policy now lives here (the clone is closed).
+        return replace(best, solver=self)
 
     def _train(self, eta: Any, cost_weights: Any, timesteps: int) -> None:
         """Set the weights (relabelling the buffer) and continue SAC for ``timesteps``."""
