@@ -894,14 +894,16 @@ class SACConstrainedSolver:
         if not _is_int(restarts) or restarts < 1:
             raise ValueError(f"restarts must be a positive int, got {restarts!r}.")
         chunks = np.diff(np.linspace(0, int(timesteps), checks + 1).round().astype(int))
-        # The clones start from the state before any chunk; their seeds come from this
-        # solver's seed, so a run is reproducible.
+        # Clone seeds come from this solver's seed, so a run is reproducible. The clones
+        # run first, one at a time (each holds a copy of the replay buffer), while this
+        # solver still has the state they start from; it runs last as restart 0.
         seeds = np.random.SeedSequence([self.seed, 4]).generate_state(restarts - 1)
-        lineages = [self] + [self.clone(int(s)) for s in seeds]
-        best, best_score, best_state = None, (-math.inf, -math.inf), None
+        order = [*range(1, restarts), 0]
+        best, best_key, best_state = None, None, None
         self.last_checks = []
-        for r, solver in enumerate(lineages):
-            for steps in chunks:
+        for r in order:
+            solver = self if r == 0 else self.clone(int(seeds[r - 1]))
+            for k, steps in enumerate(chunks):
                 solver._train(eta, cost_weights, int(steps))
                 solution = solver.evaluate(n_eval_episodes, deterministic=deterministic)
                 objective = solution.penalised_return()[0]
@@ -910,12 +912,14 @@ class SACConstrainedSolver:
                 self.last_checks.append({"restart": r, "timesteps": solver.num_timesteps,
                                          "penalised_return": objective,
                                          "success_under_constraints": success})
-                score = (0.0 if success is None else success, objective)
-                if best is None or score > best_score:
-                    best, best_score = solution, score
+                # Ties go to the earlier restart, then the earlier chunk.
+                key = (0.0 if success is None else success, objective, -r, -k)
+                if best is None or key > best_key:
+                    best, best_key = solution, key
                     best_state = copy.deepcopy(solver.model.policy.state_dict())
             if solver is not self:
                 solver.close()
+        self.last_checks.sort(key=lambda c: c["restart"])  # stable: chunks stay in order
         self.model.policy.load_state_dict(best_state)
         # A clone's solution: its policy now lives here (the clone is closed).
         return replace(best, solver=self)
