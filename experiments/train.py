@@ -431,7 +431,7 @@ def learner_row(trainer: DICRL, i: int, ctx, threshold: float,
     extra = {"FPR_before_pruning": false_positive_rate(raw, ctx["true"]),
              "FNR_before_pruning": false_negative_rate(raw, ctx["true"])}
     if prune_min_gain is not None:
-        # Pruned constraints change the likelihood by < min_gain: the policy is the same.
+        # The pruned set explains the learner's data to within min_gain nats per trajectory.
         cw, pruned = trainer.prune_constraints(i, threshold, prune_min_gain, progress=progress)
         trainer.state.cost_weights[i] = cw
         extra["pruned"] = len(pruned)
@@ -890,9 +890,9 @@ def run_simulated(cfg, out: Path, t_start: float) -> None:
             trainer.load_state_dict(states[0])
         run_of = lambda v: f"learner{v}"  # noqa: E731
         train("D-ICRL", trainer, ckpt, logger, run_of, cfg, p.ctx, log_network=True, stop=stop)
+        gap = trainer.disagreement()  # of the trained ω_c: pruning below is local
         rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out)
-        d_icrl = {"learners": rows, "history": trainer.history,
-                  "disagreement": trainer.disagreement()}
+        d_icrl = {"learners": rows, "history": trainer.history, "disagreement": gap}
         finish(cfg, out, p, d_icrl, logger, ckpt, t_start, build(cfg.comm, n_learners=1), stop)
 
 
@@ -949,9 +949,9 @@ def run_learner(comm: DistributedCommunicator, cfg, out: Path, p: Problem,
     logger = make_logger(cfg, out)
     run_of = lambda v: f"learner{v}"  # noqa: E731
     train("D-ICRL", trainer, ckpt, logger, run_of, cfg, p.ctx, log_network=rank == 0)
+    gap = trainer.disagreement()  # of the trained ω_c, as in the simulated run
     rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out,
                              progress=rank == 0)
-    gap = trainer.disagreement()  # of the pruned ω_c, as in the simulated run
     logger.close()
     write_json(out / "learner_rows" / f"rank{rank}.json", {
         "run_id": run_id, "rank": rank, "world_size": comm.n_learners, "row": rows[0],

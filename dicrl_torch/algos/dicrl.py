@@ -461,39 +461,42 @@ class DICRL:
                           progress: bool = False) -> tuple[torch.Tensor, list[int]]:
         """Keep only the learned constraints that the data supports.
 
-        For each feature ``j`` with ``ω_c,j >= threshold``, re-solve with ``ω_c,j = 0``
-        and measure the drop of local learner ``i``'s log-likelihood per trajectory. A
-        constraint whose removal costs less than ``min_gain`` nats per trajectory does
-        not change how the demonstrations are explained (the policy avoids that feature
-        anyway), so it is pruned: the smallest constraint set explaining the data, as
-        Scobee & Sastry's greedy stops when the likelihood stops improving. Uses only the
-        learner's own demonstrations.
+        Backward elimination over the features with ``ω_c,j >= threshold``, weakest
+        (smallest ``ω_c,j``, then lowest index) first: feature ``j`` is dropped (set to 0)
+        when the constraints left without it still explain learner ``i``'s own
+        demonstrations to within ``min_gain`` nats per trajectory of the trained set.
+        The bound is on the whole pruned set, not on each feature alone: two constraints
+        that block the same route are each redundant while the other stays, so dropping
+        every individually redundant one at once can open the route (measured: with soft
+        experts two learners dropped both (4,0) and (5,0) and froze at the wall). This is
+        Scobee & Sastry's stopping rule read backwards: the smallest set, found greedily,
+        whose likelihood is within ``min_gain`` of the learned one.
 
         Returns:
-            (pruned ω_c ``[d]``, indices of the pruned features).
+            (pruned ω_c ``[d]``, indices of the pruned features in the order dropped).
         """
         eta = self.state.eta_bar[i]
-        cw = self.state.cost_weights[i].clone()
+        kept = self.state.cost_weights[i].clone()
 
         def ll(w: torch.Tensor) -> float:
             self.solves += 1
             return self.learner_model.log_likelihood(i, eta, w, self.shards[i])
 
-        base = ll(cw)
+        base = ll(kept)
         m = self.stats[i].m
-        candidates = torch.nonzero(cw >= threshold).flatten().tolist()
+        candidates = sorted(torch.nonzero(kept >= threshold).flatten().tolist(),
+                            key=lambda j: (float(kept[j]), j))
         if progress:
             from tqdm.auto import tqdm
             candidates = tqdm(candidates, desc=f"prune learner {i + 1}", leave=False)
         pruned = []
         for j in candidates:
-            trial = cw.clone()
+            trial = kept.clone()
             trial[j] = 0.0
             if (base - ll(trial)) / m < min_gain:
+                kept = trial
                 pruned.append(j)
-        out = self.state.cost_weights[i].clone()
-        out[pruned] = 0.0
-        return out, pruned
+        return kept, pruned
 
     def disagreement(self) -> float:
         """max pairwise ‖ω_c^[v] − ω_c^[v']‖ over all learners."""
