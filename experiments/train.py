@@ -126,6 +126,8 @@ VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
     ("checkpoint_every", int, _ge(1), "an int >= 1 (outer iterations between checkpoints)",
      "1"),
     ("resume", bool, None, "true or false", "true"),
+    ("env.layout.n_experts", int, lambda x: x in (1, 2, 3),
+     "1, 2 or 3 (the experts of the layout's table, taken in order)", "2"),
     ("env.model.horizon", int, _ge(1), "an int >= 1 (the horizon T, decisions per episode)",
      "40"),
     # γ = 1 is well defined over a finite horizon, and TabularGridModel accepts it.
@@ -189,7 +191,7 @@ DRONE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
      "a positive number (reward units per step in a constrained cell)", "10.0"),
     ("baselines.timesteps", int, _ge(1), "an int >= 1 (SAC steps per greedy trial)", "3000"),
 ]
-GRID_ONLY = ("env.model.",)
+GRID_ONLY = ("env.model.", "env.layout.")
 
 # The baselines' table rows (names as in the paper) and the greedy's demonstrator model.
 BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}

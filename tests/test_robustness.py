@@ -91,6 +91,8 @@ def test_every_shipped_config_passes_the_checks(group, option):
 
 
 @pytest.mark.parametrize("override,key,must", [
+    ("env.layout.n_experts=4", "env.layout.n_experts", "1, 2 or 3"),
+    ("env.layout.n_experts=0", "env.layout.n_experts", "1, 2 or 3"),
     ("env.model.horizon=0", "env.model.horizon", "int >= 1"),
     ("env.model.horizon=2.5", "env.model.horizon", "int >= 1"),
     ("env.model.gamma=0", "env.model.gamma", "(0, 1]"),
