@@ -77,7 +77,7 @@ from dicrl_torch.comm.distributed import (
     shard_for_rank,
     spawn_learners,
 )
-from dicrl_torch.demos import partition_demonstrations, save_demonstrations
+from dicrl_torch.demos import load_demonstrations, partition_demonstrations, save_demonstrations
 from dicrl_torch.demos.experts import expert_solution, sample_trajectories
 from dicrl_torch.demos.storage import Demonstrations
 from dicrl_torch.envs.gridworld_env import render_grid
@@ -201,7 +201,7 @@ DRONE_BASELINES = ("M(C)E-greedy",)  # the arena is (nearly) deterministic: ME =
 KNOWN_KEYS = {
     "": {"env", "features", "solver", "algo", "graph", "comm", "logger", "name", "seed",
          "n_demonstrations", "split", "eval_episodes", "eval_every", "expert_temperature",
-         "checkpoint_every", "resume", "baselines"},
+         "checkpoint_every", "resume", "baselines", "shard_files"},
     "env": {"layout", "model", "true_reward_weights", "arena"},
     # the drones' solver node (the grid's has a _target_, checked against its signature)
     "solver": {"timesteps", "warmup_timesteps", "final_timesteps", "final_checks",
@@ -259,6 +259,34 @@ def _unknown_keys(node, path: str, problems: list[str]) -> None:
         _unknown_keys(node[key], f"{path}.{key}" if path else key, problems)
 
 
+def _check_shard_files(cfg, drones: bool, problems: list[str]) -> None:
+    """``shard_files``: null, or one existing ``.npz`` per learner, each listed once. Their
+    contents are checked when loaded (:func:`load_shard_files`), still before any solve."""
+    files = cfg.get("shard_files")
+    if files is None:
+        return
+    if drones:
+        problems.append("shard_files is for the grid world; the arena's demonstrations come "
+                        "from its planner. Set shard_files=null.")
+        return
+    if not (OmegaConf.is_list(files) and len(files) >= 1
+            and all(isinstance(f, str) and f for f in files)):
+        problems.append(f"shard_files={_plain(files)} is invalid: it must be null or a list of "
+                        f".npz paths, one per learner; set e.g. shard_files=[a.npz,b.npz].")
+        return
+    split = cfg.get("split")
+    if OmegaConf.is_list(split) and len(files) != len(split):
+        problems.append(f"shard_files lists {len(files)} files but split={_plain(split)} has "
+                        f"{len(split)} learners; give one file per learner, in learner order.")
+    if len(set(files)) != len(files):
+        problems.append(f"shard_files={_plain(files)} lists a file twice; each learner holds "
+                        f"its own share of the demonstrations.")
+    missing = [f for f in files if not Path(f).is_file()]
+    if missing:
+        problems.append(f"shard_files: no such file {', '.join(missing)} (relative paths are "
+                        f"taken from the directory the run is started in, {Path.cwd()}).")
+
+
 def is_drone_run(cfg) -> bool:
     """The drone arena (``env=drones``) rather than the grid world."""
     return OmegaConf.select(cfg, "env.arena", default=None) is not None
@@ -299,6 +327,7 @@ def check_config(cfg: DictConfig) -> None:
         problems.append(f"split={_plain(split)} sums to {sum(split)}, not n_demonstrations="
                         f"{cfg.n_demonstrations}; make them agree (e.g. n_demonstrations="
                         f"{sum(split)}).")
+    _check_shard_files(cfg, drones, problems)
     run = OmegaConf.select(cfg, "baselines.run", default=None)
     names, example = (list(DRONE_BASELINES), "baselines=greedy_drones") if drones else \
         (list(BASELINES), "baselines=greedy")
@@ -388,14 +417,63 @@ def build_problem(cfg) -> Problem:
     nominal = expert_solution(solver=exp_solver, reward_features=reward_basis(),
                               reward_weights=w_true, constrained=False,
                               temperature=cfg.expert_temperature)
-    demos = sample_trajectories(experts, cfg.n_demonstrations,
-                                np.random.default_rng(cfg.seed))
+    if cfg.get("shard_files") is None:
+        demos = sample_trajectories(experts, cfg.n_demonstrations,
+                                    np.random.default_rng(cfg.seed))
+        shards = partition_demonstrations(demos, split)
+    else:
+        shards = load_shard_files(list(cfg.shard_files), split, model)
+        demos = concatenate(shards)
     ctx = {"model": model, "layout": layout, "episodes": cfg.eval_episodes,
            "reward_table": reward_basis().weighted(w_true).local[:, :, 0],
            "seed": cfg.seed, "w_true": w_true, "true": cost_basis.true_constraints().numpy()}
     return Problem(layout=layout, model=model, solver=solver, reward_basis=reward_basis,
                    cost_basis=cost_basis, experts=experts, nominal=nominal, demos=demos,
-                   shards=partition_demonstrations(demos, split), ctx=ctx)
+                   shards=shards, ctx=ctx)
+
+
+def load_shard_files(files: list[str], split: list[int], model) -> list[Demonstrations]:
+    """Learner ``v``'s demonstrations from ``files[v]``, checked against the learners' model
+    (cells, actions, experts, horizon, start cells) and ``split``, before any solve.
+
+    Raises:
+        ValueError: naming the file, what does not match and the fix.
+    """
+    shards = [load_demonstrations(f, n_cells=model.n_cells, n_actions=model.n_actions,
+                                  n_experts=model.n_experts, horizon=model.horizon)
+              for f in files]
+    counts = [s.n_trajectories for s in shards]
+    if counts != split:
+        raise ValueError(f"shard_files hold {counts} trajectories, but split={split}; set "
+                         f"split=[{','.join(map(str, counts))}] n_demonstrations={sum(counts)}.")
+    start = np.asarray(model.start_state)
+    for f, shard in zip(files, shards, strict=True):
+        # P0 puts every expert in its start cell: a trajectory starting elsewhere was
+        # recorded on another layout, and its likelihood would be 0.
+        wrong = np.nonzero((shard.states[:, 0] != start).any(1))[0]
+        if wrong.size:
+            k = int(wrong[0])
+            raise ValueError(f"demonstrations file '{f}': trajectory {k} starts in cells "
+                             f"{shard.states[k, 0].tolist()}, but this layout's experts start "
+                             f"in {start.tolist()}; use demonstrations recorded on this "
+                             f"layout, or the env.layout they were recorded on.")
+    return shards
+
+
+def check_shard_contents(cfg) -> None:
+    """Read ``shard_files`` once before anything is solved: a file that does not fit the run
+    fails at start-up with :func:`load_shard_files`' message, not minutes later."""
+    if is_drone_run(cfg) or cfg.get("shard_files") is None:
+        return
+    model = build(cfg.env.model, layout=instantiate(cfg.env.layout))
+    load_shard_files(list(cfg.shard_files), list(cfg.split), model)
+
+
+def concatenate(shards: list[Demonstrations]) -> Demonstrations:
+    """All learners' trajectories, in learner order (C-ICRL's and the baselines' data)."""
+    return Demonstrations(states=np.concatenate([s.states for s in shards]),
+                          actions=np.concatenate([s.actions for s in shards]),
+                          n_cells=shards[0].n_cells, n_actions=shards[0].n_actions)
 
 
 def announce(cfg, p: Problem, out: Path) -> None:
@@ -1100,7 +1178,8 @@ def main(cfg: DictConfig) -> None:
     out = Path(HydraConfig.get().runtime.output_dir)
     try:
         check_config(cfg)
-    except ConfigError as e:
+        check_shard_contents(cfg)
+    except ValueError as e:  # a ConfigError, or a shard file that does not fit the run
         print(f"error: {e}", file=sys.stderr, flush=True)
         sys.exit(2)
     torch.set_num_threads(int(os.environ.get("DICRL_THREADS", torch.get_num_threads())))

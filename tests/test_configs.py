@@ -165,3 +165,25 @@ def test_same_seed_same_results(tmp_path):
     a, b = run_train(tmp_path / "a"), run_train(tmp_path / "b")
     assert a.returncode == 0 and b.returncode == 0
     assert comparable(tmp_path / "a") == comparable(tmp_path / "b")
+
+
+def test_own_shard_files_reproduce_the_sampled_run(tmp_path):
+    """A run on ``shard_files`` holding exactly the demonstrations a sampled run drew, split
+    the same way, computes the same results.json (the config aside)."""
+    from dicrl_torch.demos import (
+        load_demonstrations,
+        partition_demonstrations,
+        save_demonstrations,
+    )
+
+    sampled = run_train(tmp_path / "sampled")
+    assert sampled.returncode == 0, sampled.stderr[-2000:]
+    demos = load_demonstrations(tmp_path / "sampled" / "demos.npz")
+    files = [save_demonstrations(tmp_path / f"learner{v}.npz", shard)
+             for v, shard in enumerate(partition_demonstrations(demos, [4, 6]))]
+    own = run_train(tmp_path / "own", f"shard_files=[{files[0]},{files[1]}]")
+    assert own.returncode == 0, own.stderr[-2000:]
+    a, b = comparable(tmp_path / "sampled"), comparable(tmp_path / "own")
+    assert b["config"].pop("shard_files") == [str(f) for f in files]
+    a["config"].pop("shard_files")
+    assert a == b

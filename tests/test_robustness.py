@@ -479,3 +479,79 @@ def test_a_basis_outside_0_d_or_of_the_wrong_width_is_refused(grid_model, case, 
         joint[4] = 0.7  # 0.5 + 0.7 on feature 0
     with pytest.raises(ValueError, match=match):
         BadBasis(m, local, joint, dim)()
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """Demonstrations recorded on the single-expert 9x9 layout with T = 8: 3 + 4 files."""
+    from dicrl_torch.demos import partition_demonstrations, save_demonstrations
+    from dicrl_torch.demos.experts import expert_solution, sample_trajectories
+    from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+    from dicrl_torch.features.bases import GoalClosenessRewardBasis
+    from dicrl_torch.solvers.factored import FactoredSoftBellman
+
+    d = tmp_path_factory.mktemp("recorded")
+    model = TabularGridModel(layout=GridLayout.scobee(n_experts=1), horizon=8)
+    rb = GoalClosenessRewardBasis(model)
+    experts = expert_solution(solver=FactoredSoftBellman(model=model), reward_features=rb(),
+                              reward_weights=rb.true_weights())
+    demos = sample_trajectories(experts, 7, np.random.default_rng(0))
+    return [str(save_demonstrations(d / f"learner{v}.npz", s))
+            for v, s in enumerate(partition_demonstrations(demos, [3, 4]))]
+
+
+ONE_EXPERT = ["env.layout.n_experts=1", "env.model.horizon=8", "n_demonstrations=7",
+              "split=[3,4]"]
+
+
+def files_override(files):
+    return f"shard_files=[{','.join(files)}]"
+
+
+@pytest.mark.parametrize("extra,match", [
+    (["split=[2,5]"], r"hold \[3, 4\] trajectories.*set split=\[3,4\] n_demonstrations=7"),
+    (["env.model.horizon=9"], r"learner0\.npz.*horizon"),
+    (["env.layout.n_experts=2", "env.model.horizon=8"], r"learner0\.npz.*n_experts"),
+])
+def test_shard_files_that_do_not_fit_the_run_are_refused_before_any_solve(recorded, extra,
+                                                                           match):
+    cfg = compose_train(*ONE_EXPERT, files_override(recorded), *extra)
+    entry.check_config(cfg)  # the paths are fine; their contents are not
+    with pytest.raises(ValueError, match=match):
+        entry.build_problem(cfg)
+
+
+def test_shard_files_from_another_start_are_refused(recorded, tmp_path):
+    from dicrl_torch.demos import load_demonstrations, save_demonstrations
+    from dicrl_torch.demos.storage import Demonstrations
+
+    d = load_demonstrations(recorded[1])
+    states = d.states.copy()
+    states[2, 0, 0] = 40  # trajectory 2 starts in the centre cell, not in (0, 8)
+    moved = save_demonstrations(tmp_path / "moved.npz", Demonstrations(
+        states=states, actions=d.actions, n_cells=d.n_cells, n_actions=d.n_actions))
+    cfg = compose_train(*ONE_EXPERT, files_override([recorded[0], str(moved)]))
+    with pytest.raises(ValueError, match=r"moved\.npz': trajectory 2 starts in cells \[40\]"):
+        entry.build_problem(cfg)
+
+
+@pytest.mark.parametrize("files,match", [
+    (lambda r: [r[0]], r"lists 1 files but split=\[3, 4\] has 2 learners"),
+    (lambda r: [r[0], r[0]], "lists a file twice"),
+    (lambda r: [r[0], "nowhere.npz"], "no such file nowhere.npz"),
+])
+def test_shard_file_lists_are_checked_with_the_config(recorded, files, match):
+    with pytest.raises(entry.ConfigError, match=match):
+        entry.check_config(compose_train(*ONE_EXPERT, files_override(files(recorded))))
+
+
+def test_shard_files_are_refused_for_the_arena(recorded):
+    with pytest.raises(entry.ConfigError, match="shard_files is for the grid world"):
+        entry.check_config(compose_train("experiment=table2_quick", files_override(recorded)))
+
+
+def test_the_command_line_refuses_a_shard_file_misfit_at_start_up(recorded, tmp_path):
+    out = run_train(tmp_path, *ONE_EXPERT, files_override(recorded), "split=[4,3]")
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert "error: shard_files hold [3, 4] trajectories" in out.stderr
+    assert "Traceback" not in out.stderr and not (tmp_path / "results.json").exists()
