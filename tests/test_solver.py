@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -154,8 +155,14 @@ def test_extreme_multipliers_stay_finite(lam_):
     reward = rb().weighted(rb.true_weights() * 1e3) + cb().weighted(
         torch.full((cb.dim,), 0.5, dtype=torch.float64)).scale(lam_)
     # float32 resolves |V| ~ 1e6 only to ~0.06: finite, but it warns to use float64.
+    solver32 = FactoredSoftBellman(model=model, dtype=torch.float32)
     with pytest.warns(RuntimeWarning, match="float64"):
-        sol32 = FactoredSoftBellman(model=model, dtype=torch.float32).solve(reward)
+        sol32 = solver32.solve(reward)
+    with warnings.catch_warnings():  # the same scale again: said once per solver
+        warnings.simplefilter("error")
+        solver32.solve(reward)
+    with pytest.warns(RuntimeWarning, match="float64"):  # |V| doubled: said again
+        solver32.solve(reward.scale(4.0))
     sol = FactoredSoftBellman(model=model, dtype=torch.float64).solve(reward)
     for s in (sol32, sol):
         assert torch.isfinite(s.V).all()

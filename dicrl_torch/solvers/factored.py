@@ -460,6 +460,7 @@ class FactoredSoftBellman:
         self.w_self, self.move_src, self.w_move = self._predecessors()
         self.move_nxt = self.nxt_t[self.a_index.unsqueeze(0), self.move_src]  # [K, A1, S1]
         self._bwd = self._fwd = None
+        self._warned_value = 0.0  # the |V| of the last float32 precision warning
         if self.use_compile:
             self._bwd = torch.compile(_backward_kernel, dynamic=False)
             self._fwd = torch.compile(_forward_kernel, dynamic=False)
@@ -592,13 +593,16 @@ class FactoredSoftBellman:
         if self.dtype == torch.float32:
             finite = V[torch.isfinite(V)]
             v_max = float(finite.abs().max()) if finite.numel() else 0.0
-            if v_max > FLOAT32_VALUE_LIMIT:
+            # Again only when |V| has doubled since: a training run solves hundreds of
+            # times at about the same scale, and one line says it.
+            if v_max > max(FLOAT32_VALUE_LIMIT, 2.0 * self._warned_value):
                 # float32 resolves V to ~|V| * 6e-8; beyond this, policies (exp(Q - V))
                 # lose per-step accuracy of order 1e-3 or worse and occupancies drift.
+                self._warned_value = v_max
                 warnings.warn(
                     f"|V| reaches {v_max:.3g}: float32 cannot resolve the policy accurately "
-                    f"at this scale; use dtype=torch.float64 (or smaller weights).",
-                    RuntimeWarning, stacklevel=2)
+                    f"at this scale; use dtype=torch.float64 (or smaller weights). Repeated "
+                    f"only if |V| doubles.", RuntimeWarning, stacklevel=2)
         sol = SoftBellmanSolution(V=V, reward=reward, temperature=float(temperature), solver=self,
                                   backup=backup)
         sol.timings["backward_s"] = t1 - t0
