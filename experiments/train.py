@@ -281,10 +281,38 @@ def _check_shard_files(cfg, drones: bool, problems: list[str]) -> None:
     if len(set(files)) != len(files):
         problems.append(f"shard_files={_plain(files)} lists a file twice; each learner holds "
                         f"its own share of the demonstrations.")
-    missing = [f for f in files if not Path(f).is_file()]
+    rank = torchrun_rank(cfg)
+    reads = shard_files_read_by(cfg, rank)
+    missing = [files[v] for v in reads if not Path(files[v]).is_file()]
     if missing:
-        problems.append(f"shard_files: no such file {', '.join(missing)} (relative paths are "
-                        f"taken from the directory the run is started in, {Path.cwd()}).")
+        who = "" if rank is None else f"learner process {rank}: "
+        pooled = "" if rank != 0 or len(reads) == 1 else (
+            " Rank 0 reads every file because it pools them for C-ICRL and the baselines; "
+            "make them reachable from its machine, or set algo.run_c_icrl=false "
+            "baselines=none.")
+        problems.append(f"{who}shard_files: no such file {', '.join(missing)} (relative paths "
+                        f"are taken from the directory the run is started in, "
+                        f"{Path.cwd()}).{pooled}")
+
+
+def torchrun_rank(cfg) -> int | None:
+    """This process's learner id when torchrun started it for ``comm=distributed``."""
+    if is_drone_run(cfg) or is_simulated(cfg) or "RANK" not in os.environ:
+        return None
+    return int(os.environ["RANK"])
+
+
+def shard_files_read_by(cfg, rank: int | None) -> list[int]:
+    """Which of ``shard_files`` a process reads. A learner process (``rank``) reads only its
+    own, so on several machines a file need only lie on its learner's machine. The process
+    that finishes the run (``rank`` None, or torchrun's rank 0) reads every file when it
+    pools them for C-ICRL or the baselines."""
+    n = len(cfg.shard_files)
+    pools = bool(cfg.algo.run_c_icrl) or bool(
+        OmegaConf.select(cfg, "baselines.run", default=None))
+    if rank is None or (rank == 0 and pools):
+        return list(range(n))
+    return [rank] if rank < n else []
 
 
 def is_drone_run(cfg) -> bool:
@@ -393,12 +421,18 @@ class Problem:
     cost_basis: Any
     experts: Any
     nominal: Any
-    demos: Demonstrations
-    shards: list[Demonstrations]
+    demos: Demonstrations | None  # None: a learner process that read only its own file
+    shards: list[Demonstrations | None]
     ctx: dict  # what evaluate() needs
 
 
-def build_problem(cfg) -> Problem:
+def build_problem(cfg, rank: int | None = None) -> Problem:
+    """The problem as process ``rank`` sees it (None: the process that holds every shard).
+
+    With ``shard_files``, a learner process reads only the files
+    :func:`shard_files_read_by` names: the other learners' entries of ``shards`` are None,
+    and so is ``demos`` unless every file was read.
+    """
     layout = instantiate(cfg.env.layout)
     model = build(cfg.env.model, layout=layout)
     solver = build(cfg.solver, model=model)
@@ -422,8 +456,9 @@ def build_problem(cfg) -> Problem:
                                     np.random.default_rng(cfg.seed))
         shards = partition_demonstrations(demos, split)
     else:
-        shards = load_shard_files(list(cfg.shard_files), split, model)
-        demos = concatenate(shards)
+        shards = load_shard_files(list(cfg.shard_files), split, model,
+                                  read=shard_files_read_by(cfg, rank))
+        demos = None if None in shards else concatenate(shards)
     ctx = {"model": model, "layout": layout, "episodes": cfg.eval_episodes,
            "reward_table": reward_basis().weighted(w_true).local[:, :, 0],
            "seed": cfg.seed, "w_true": w_true, "true": cost_basis.true_constraints().numpy()}
@@ -432,22 +467,36 @@ def build_problem(cfg) -> Problem:
                    shards=shards, ctx=ctx)
 
 
-def load_shard_files(files: list[str], split: list[int], model) -> list[Demonstrations]:
+def load_shard_files(files: list[str], split: list[int], model,
+                     read: list[int] | None = None) -> list[Demonstrations | None]:
     """Learner ``v``'s demonstrations from ``files[v]``, checked against the learners' model
     (cells, actions, experts, horizon, start cells) and ``split``, before any solve.
+
+    Args:
+        read: the learners whose files are read (default: all); the others' entries are None.
 
     Raises:
         ValueError: naming the file, what does not match and the fix.
     """
-    shards = [load_demonstrations(f, n_cells=model.n_cells, n_actions=model.n_actions,
-                                  n_experts=model.n_experts, horizon=model.horizon)
-              for f in files]
-    counts = [s.n_trajectories for s in shards]
-    if counts != split:
-        raise ValueError(f"shard_files hold {counts} trajectories, but split={split}; set "
-                         f"split=[{','.join(map(str, counts))}] n_demonstrations={sum(counts)}.")
+    read = list(range(len(files))) if read is None else read
+    shards: list[Demonstrations | None] = [None] * len(files)
+    for v in read:
+        shards[v] = load_demonstrations(files[v], n_cells=model.n_cells,
+                                        n_actions=model.n_actions, n_experts=model.n_experts,
+                                        horizon=model.horizon)
+    if len(read) == len(files):
+        counts = [s.n_trajectories for s in shards]
+        if counts != split:
+            raise ValueError(f"shard_files hold {counts} trajectories, but split={split}; set "
+                             f"split=[{','.join(map(str, counts))}] "
+                             f"n_demonstrations={sum(counts)}.")
+    for v in read:
+        if shards[v].n_trajectories != split[v]:
+            raise ValueError(f"demonstrations file '{files[v]}' holds "
+                             f"{shards[v].n_trajectories} trajectories, but split[{v}]="
+                             f"{split[v]}; set split to the files' trajectory counts.")
     start = np.asarray(model.start_state)
-    for f, shard in zip(files, shards, strict=True):
+    for f, shard in ((files[v], shards[v]) for v in read):
         # P0 puts every expert in its start cell: a trajectory starting elsewhere was
         # recorded on another layout, and its likelihood would be 0.
         wrong = np.nonzero((shard.states[:, 0] != start).any(1))[0]
@@ -466,7 +515,8 @@ def check_shard_contents(cfg) -> None:
     if is_drone_run(cfg) or cfg.get("shard_files") is None:
         return
     model = build(cfg.env.model, layout=instantiate(cfg.env.layout))
-    load_shard_files(list(cfg.shard_files), list(cfg.split), model)
+    load_shard_files(list(cfg.shard_files), list(cfg.split), model,
+                     read=shard_files_read_by(cfg, torchrun_rank(cfg)))
 
 
 def concatenate(shards: list[Demonstrations]) -> Demonstrations:
@@ -479,7 +529,8 @@ def concatenate(shards: list[Demonstrations]) -> Demonstrations:
 def announce(cfg, p: Problem, out: Path) -> None:
     """Printed (and the demonstrations saved) once per run, by the main process."""
     split = list(cfg.split)
-    save_demonstrations(out / "demos.npz", p.demos)
+    if p.demos is not None and cfg.get("shard_files") is None:  # files: already on disk
+        save_demonstrations(out / "demos.npz", p.demos)
     make_baselines(cfg, p, progress=False)  # a baseline that cannot run fails now, not later
     print(f"{p.layout.n_experts} experts, {len(split)} learners holding {split} demonstrations;"
           f" {p.model.n_pairs:,} state-action pairs")
@@ -918,8 +969,12 @@ def write_figures(cfg, out: Path, p: Problem, methods: dict, histories: dict,
     history are expert rows.
     """
     bilevel = [k for k in methods if k in histories and k not in BASELINES]
-    visits = state_visitation(p.demos.states, p.layout.n_cells)
     colour = "colour: share of expert trajectories entering the cell"
+    held = p.demos
+    if held is None:  # torchrun's rank 0 with private shard files reads only its own
+        held = next(s for s in p.shards if s is not None)
+        colour += " (learner 1's file)"
+    visits = state_visitation(held.states, p.layout.n_cells)
     images = {"fig2a_true_visitation": visitation_heatmap(
         p.layout, visits, constraint_cells=obstacle_cells(p.layout),
         title=f"Fig. 2a: the true CMG, its constraints (x)\n{colour}")}
@@ -1073,7 +1128,7 @@ def spawned_learner(rank: int, world_size: int, init_method: str, cfg_yaml: str,
     cfg = OmegaConf.create(cfg_yaml)
     comm = build(cfg.comm, init_method=init_method, rank=rank, world_size=world_size)
     comm.check_same_config(cfg_yaml)
-    run_learner(comm, cfg, Path(out_dir), build_problem(cfg), run_id)
+    run_learner(comm, cfg, Path(out_dir), build_problem(cfg, rank=rank), run_id)
     comm.close()
 
 
@@ -1150,7 +1205,7 @@ def run_torchrun(cfg, out: Path, t_start: float) -> None:
         comm = build(cfg.comm, rank=rank, world_size=world_size)  # init_method env://
         comm.check_same_config(OmegaConf.to_yaml(cfg, resolve=True))
         out, run_id = agree_on_run_dir(comm, out)
-        p = build_problem(cfg)
+        p = build_problem(cfg, rank=rank)
         if rank == 0:
             announce(cfg, p, out)
         run_learner(comm, cfg, out, p, run_id)

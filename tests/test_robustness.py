@@ -555,3 +555,38 @@ def test_the_command_line_refuses_a_shard_file_misfit_at_start_up(recorded, tmp_
     assert out.returncode == 2, out.stderr[-2000:]
     assert "error: shard_files hold [3, 4] trajectories" in out.stderr
     assert "Traceback" not in out.stderr and not (tmp_path / "results.json").exists()
+
+
+@pytest.mark.parametrize("rank,extra,reads", [
+    (None, [], [0, 1]),                                  # one process holds every learner
+    ("1", [], [1]),                                      # a torchrun learner: its own file
+    ("0", [], [0, 1]),                                   # rank 0 pools them for C-ICRL
+    ("0", ["algo.run_c_icrl=false"], [0]),               # ... unless nothing is pooled
+    ("0", ["algo.run_c_icrl=false", "baselines=greedy"], [0, 1]),
+])
+def test_each_process_reads_only_the_shard_files_it_needs(recorded, monkeypatch, rank, extra,
+                                                          reads):
+    comm = [] if rank is None else ["comm=distributed"]
+    if rank is not None:
+        monkeypatch.setenv("RANK", rank)
+        monkeypatch.setenv("WORLD_SIZE", "2")
+    cfg = compose_train(*ONE_EXPERT, *comm, *extra, files_override(recorded))
+    assert entry.shard_files_read_by(cfg, entry.torchrun_rank(cfg)) == reads
+
+
+def test_a_learner_process_needs_only_its_own_shard_file(recorded, monkeypatch):
+    """Learner 1's machine lacks learner 0's file: learner 1 runs; rank 0, which pools the
+    files for C-ICRL, is refused with the fix."""
+    files = ["elsewhere/learner0.npz", recorded[1]]
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    cfg = compose_train(*ONE_EXPERT, "comm=distributed", files_override(files))
+    entry.check_config(cfg)
+    entry.check_shard_contents(cfg)
+    p = entry.build_problem(cfg, rank=1)
+    assert p.shards[0] is None and p.demos is None
+    assert p.shards[1].n_trajectories == 4
+    monkeypatch.setenv("RANK", "0")
+    with pytest.raises(entry.ConfigError, match=r"learner process 0: shard_files: no such file "
+                       r"elsewhere/learner0\.npz.*algo\.run_c_icrl=false baselines=none"):
+        entry.check_config(cfg)
