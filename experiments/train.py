@@ -918,9 +918,7 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
                                 "learners": d_icrl["learners"]}}
     histories = {"D-ICRL": d_icrl["history"]}
     if a.run_c_icrl:
-        d = p.demos
-        pooled = Demonstrations(states=d.states, actions=d.actions, n_cells=d.n_cells,
-                                n_actions=d.n_actions)
+        pooled = p.demos  # every learner's trajectories, in learner order
         c = make_trainer(cfg, p, [pooled], c_icrl_comm, [pooled.n_trajectories])
         if states := ckpt.states("C-ICRL"):
             c.load_state_dict(states[0])
