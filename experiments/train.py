@@ -419,7 +419,7 @@ class Problem:
     solver: Any
     reward_basis: Any
     cost_basis: Any
-    experts: Any
+    experts: Any  # None in a learner process on its own shard file (rank >= 1)
     nominal: Any
     demos: Demonstrations | None  # None: a learner process that read only its own file
     shards: list[Demonstrations | None]
@@ -443,14 +443,17 @@ def build_problem(cfg, rank: int | None = None) -> Problem:
     if sum(split) != cfg.n_demonstrations:
         raise ValueError(f"split {split} sums to {sum(split)}, not n_demonstrations="
                          f"{cfg.n_demonstrations}; make them agree.")
-    # Experts: the demonstrations and the two reference rows.
-    exp_solver = build(cfg.solver, model=model, dtype=torch.float64) \
-        if model.n_pairs < 5_000_000 else solver
-    experts = expert_solution(solver=exp_solver, reward_features=reward_basis(),
-                              reward_weights=w_true, temperature=cfg.expert_temperature)
-    nominal = expert_solution(solver=exp_solver, reward_features=reward_basis(),
-                              reward_weights=w_true, constrained=False,
-                              temperature=cfg.expert_temperature)
+    # Experts: the demonstrations and the two reference rows. A learner process on its own
+    # shard file needs neither (rank 0 writes the rows), nor their solves' minutes.
+    experts = nominal = None
+    if cfg.get("shard_files") is None or rank in (None, 0):
+        exp_solver = build(cfg.solver, model=model, dtype=torch.float64) \
+            if model.n_pairs < 5_000_000 else solver
+        experts = expert_solution(solver=exp_solver, reward_features=reward_basis(),
+                                  reward_weights=w_true, temperature=cfg.expert_temperature)
+        nominal = expert_solution(solver=exp_solver, reward_features=reward_basis(),
+                                  reward_weights=w_true, constrained=False,
+                                  temperature=cfg.expert_temperature)
     if cfg.get("shard_files") is None:
         demos = sample_trajectories(experts, cfg.n_demonstrations,
                                     np.random.default_rng(cfg.seed))

@@ -585,6 +585,7 @@ def test_a_learner_process_needs_only_its_own_shard_file(recorded, monkeypatch):
     entry.check_shard_contents(cfg)
     p = entry.build_problem(cfg, rank=1)
     assert p.shards[0] is None and p.demos is None
+    assert p.experts is None and p.nominal is None  # only rank 0 writes the expert rows
     assert p.shards[1].n_trajectories == 4
     monkeypatch.setenv("RANK", "0")
     with pytest.raises(entry.ConfigError, match=r"learner process 0: shard_files: no such file "
