@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import hashlib
 import inspect
 import json
 import math
@@ -410,6 +411,11 @@ def training_config(cfg) -> dict[str, Any]:
 
     container = OmegaConf.to_container(cfg, resolve=True)
     walk({k: container[k] for k in CHECKPOINT_KEYS if k in container}, "")
+    if container.get("shard_files") is not None:
+        # Own demonstrations: the state depends on the files' contents, not on their paths.
+        flat["shard_files.sha256"] = [hashlib.sha256(Path(f).read_bytes()).hexdigest()[:16]
+                                      if Path(f).is_file() else None
+                                      for f in container["shard_files"]]
     return flat
 
 

@@ -591,3 +591,27 @@ def test_a_learner_process_needs_only_its_own_shard_file(recorded, monkeypatch):
     with pytest.raises(entry.ConfigError, match=r"learner process 0: shard_files: no such file "
                        r"elsewhere/learner0\.npz.*algo\.run_c_icrl=false baselines=none"):
         entry.check_config(cfg)
+
+
+def test_a_checkpoint_of_other_shard_files_is_refused(recorded, tmp_path):
+    """Resuming on demonstration files with other contents would continue training on
+    other data; the same contents (also under another path) resume. Runs without
+    shard_files keep their configuration as before (older checkpoints stay valid)."""
+    import shutil
+
+    sampled = entry.training_config(compose_train(*ONE_EXPERT))
+    assert not any(k.startswith("shard_files") for k in sampled)
+    own = entry.training_config(compose_train(*ONE_EXPERT, files_override(recorded)))
+    copy = str(shutil.copy(recorded[1], tmp_path / "copy.npz"))
+    same = entry.training_config(compose_train(*ONE_EXPERT,
+                                               files_override([recorded[0], copy])))
+    swapped = entry.training_config(compose_train(*ONE_EXPERT, "split=[4,3]",
+                                                  files_override(recorded[::-1])))
+    assert own["shard_files.sha256"] == same["shard_files.sha256"]
+    assert own["shard_files.sha256"] != swapped["shard_files.sha256"]
+    path = tmp_path / "checkpoint.pt"
+    entry.Checkpoints(path, False, config=own).save("D-ICRL", tiny_dicrl.make_trainer(
+        tiny_dicrl.build_tiny()))
+    entry.Checkpoints(path, True, config=same)
+    with pytest.raises(ValueError, match="shard_files.sha256"):
+        entry.Checkpoints(path, True, config=swapped)
