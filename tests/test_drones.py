@@ -300,6 +300,32 @@ def test_bad_input_is_rejected_with_fix():
         env.observation_space("drone_7")
 
 
+def test_grid_and_arena_refuse_the_same_call_mistakes_with_the_same_messages():
+    from dicrl_torch.envs.grid import GridLayout
+    from dicrl_torch.envs.gridworld_env import GridWorldCMG
+
+    messages = []
+    for env, action in ((GridWorldCMG(layout=GridLayout.scobee(2)), 0),
+                        (DroneArena(), np.zeros(2))):
+        said = []
+        with pytest.raises(RuntimeError, match="before reset") as err:
+            env.step(dict.fromkeys(env.possible_agents, action))
+        said.append(str(err.value))
+        with pytest.raises(RuntimeError, match="before reset") as err:
+            env.state()
+        said.append(str(err.value))
+        env.reset(seed=0)
+        first, second = env.possible_agents
+        for actions in ({first: action}, {first: action, second: action, "ghost": action}):
+            with pytest.raises(ValueError) as err:
+                env.step(actions)
+            said.append(str(err.value).replace(repr(env.possible_agents), "AGENTS")
+                        .replace(second, "SECOND"))
+        messages.append(said)
+    assert messages[0] == messages[1]
+    assert "No action given" in messages[0][2] and "Unknown agent 'ghost'" in messages[0][3]
+
+
 def test_render_returns_image():
     env = DroneArena(render_mode="rgb_array")
     env.reset(seed=0)

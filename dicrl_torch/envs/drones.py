@@ -58,7 +58,8 @@ from gymnasium import logger, spaces
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
-from pettingzoo import ParallelEnv
+
+from dicrl_torch.envs.parallel import CheckedParallelEnv
 
 # ---------------------------------------------------------------------------- layout
 ROOM_SIZE: float = 10.0
@@ -328,7 +329,7 @@ def joint_step(
 
 
 # -------------------------------------------------------------------------- the env
-class DroneArena(ParallelEnv):
+class DroneArena(CheckedParallelEnv):
     """Two drones crossing a 10 m room; the true game or its nominal game.
 
     Observation of drone ``i`` (float32, 10 values): own position and velocity, the
@@ -422,6 +423,10 @@ class DroneArena(ParallelEnv):
         return spaces.Box(low=-1.0, high=1.0, shape=(2,), dtype=np.float32)
 
     # ---- episode ------------------------------------------------------------------
+    @property
+    def started(self) -> bool:
+        return self._state is not None
+
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
@@ -449,12 +454,13 @@ class DroneArena(ParallelEnv):
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Advance one step. ``actions`` must hold a ``[2]`` command for every agent in
         ``agents``; actions of agents that are already done are ignored."""
-        if self._state is None:
-            raise RuntimeError("step() called before reset(); call env.reset(seed=...) first.")
-        if not self.agents:  # PettingZoo convention: stepping a finished episode is a no-op
+        given = self._live_actions(actions)
+        if given is None:
             return {}, {}, {}, {}, {}
-        live = list(self.agents)
-        command = self._check_actions(actions, live)
+        live = list(given)
+        command = np.zeros((N_DRONES, 2))
+        for agent, a in given.items():
+            command[self._index[agent]] = self._check_command(agent, a)
         noise = self.dynamics.sample_noise(self._rng, (N_DRONES, 2))
         res = joint_step(self._state, command, self._active, noise, dynamics=self.dynamics,
                          proximity_radius=self.proximity_radius, constrained=self.constrained)
@@ -479,8 +485,7 @@ class DroneArena(ParallelEnv):
     def observe(self, agent: str) -> np.ndarray:
         """``[10]`` float32 observation of ``agent`` (also for agents that are done)."""
         i = self._agent_index(agent)
-        if self._state is None:
-            raise RuntimeError("observe() called before reset(); call env.reset() first.")
+        self._require_started("observe")
         j = 1 - i
         o = np.concatenate([self._state[i], self._state[j], self._doors[i]])
         # The dynamics keep o inside the bounds; the clip only absorbs float32 rounding.
@@ -488,8 +493,7 @@ class DroneArena(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """``[N, 4]`` float64 positions and velocities (done drones where they stopped)."""
-        if self._state is None:
-            raise RuntimeError("state() called before reset(); call env.reset() first.")
+        self._require_started("state")
         return self._state.copy()
 
     @property
@@ -531,31 +535,15 @@ class DroneArena(ParallelEnv):
         return {"violated": violated, "reached": reached, "collision": collision,
                 "in_obstacle": obstacle, "position": self._state[i, :2].copy()}
 
-    def _agent_index(self, agent: str) -> int:
-        try:
-            return self._index[agent]
-        except (KeyError, TypeError):
+    def _check_command(self, agent: str, a: Any) -> np.ndarray:
+        """``a`` as a ``[2]`` float64 command, clipped to ``[-1, 1]``."""
+        arr = np.asarray(a, dtype=np.float64) if _is_numeric(a) else None
+        if arr is None or arr.shape != (2,) or not np.all(np.isfinite(arr)):
             raise ValueError(
-                f"Unknown agent {agent!r}; this env's agents are {self.possible_agents}."
-            ) from None
-
-    def _check_actions(self, actions: dict[str, Any], live: list[str]) -> np.ndarray:
-        missing = [a for a in live if a not in actions]
-        if missing:
-            raise ValueError(f"No action given for active agent(s) {missing}; give one each.")
-        command = np.zeros((N_DRONES, 2))
-        for agent, a in actions.items():
-            i = self._agent_index(agent)
-            if agent not in live:
-                continue
-            arr = np.asarray(a, dtype=np.float64) if _is_numeric(a) else None
-            if arr is None or arr.shape != (2,) or not np.all(np.isfinite(arr)):
-                raise ValueError(
-                    f"Action of {agent} must be a finite [2] velocity command in [-1, 1], "
-                    f"got {a!r}."
-                )
-            command[i] = np.clip(arr, -1.0, 1.0)
-        return command
+                f"Action of {agent} must be a finite [2] velocity command in [-1, 1], "
+                f"got {a!r}."
+            )
+        return np.clip(arr, -1.0, 1.0)
 
 
 def _is_numeric(a: Any) -> bool:

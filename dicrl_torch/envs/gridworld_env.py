@@ -23,9 +23,9 @@ from gymnasium import logger, spaces
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
-from pettingzoo import ParallelEnv
 
 from dicrl_torch.envs.grid import ACTION_NAMES, N_ACTIONS, GridLayout
+from dicrl_torch.envs.parallel import CheckedParallelEnv
 
 DEFAULT_REWARD_WEIGHTS: tuple[float, float] = (1.0, 2.0)
 
@@ -34,7 +34,7 @@ DEFAULT_REWARD_WEIGHTS: tuple[float, float] = (1.0, 2.0)
 EXPERT_COLOURS: tuple[str, ...] = ("#1f77b4", "#ff7f0e", "#2ca02c")
 
 
-class GridWorldCMG(ParallelEnv):
+class GridWorldCMG(CheckedParallelEnv):
     """Multi-expert grid world; the true CMG or its nominal (unconstrained) game.
 
     Every agent observes the joint cells of all experts (cell index ``y * size + x``)
@@ -143,6 +143,10 @@ class GridWorldCMG(ParallelEnv):
         return np.stack([closeness, at_goal], axis=-1)
 
     # ---- episode ------------------------------------------------------------------
+    @property
+    def started(self) -> bool:
+        return self._cells is not None
+
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
@@ -161,12 +165,11 @@ class GridWorldCMG(ParallelEnv):
     def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
         """Advance one step. ``actions`` must hold an action for every agent in
         ``agents``; actions of agents that are already done are ignored."""
-        if self._cells is None:
-            raise RuntimeError("step() called before reset(); call env.reset(seed=...) first.")
-        if not self.agents:  # PettingZoo convention: stepping a finished episode is a no-op
+        given = self._live_actions(actions)
+        if given is None:
             return {}, {}, {}, {}, {}
-        live = list(self.agents)
-        acts = self._check_actions(actions, live)
+        live = list(given)
+        acts = {agent: self._check_action(agent, a) for agent, a in given.items()}
         pairs = [(a, self._index[a]) for a in live]
 
         # One draw per expert, in expert order, also for finished experts: the random
@@ -204,8 +207,7 @@ class GridWorldCMG(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """The joint cells ``[N]`` int64 (frozen experts at the cell where they stopped)."""
-        if self._cells is None:
-            raise RuntimeError("state() called before reset(); call env.reset() first.")
+        self._require_started("state")
         return self._cells.copy()
 
     def render(self) -> np.ndarray | None:
@@ -226,35 +228,16 @@ class GridWorldCMG(ParallelEnv):
         pass
 
     # ---- helpers ------------------------------------------------------------------
-    def _agent_index(self, agent: str) -> int:
-        try:
-            return self._index[agent]
-        except KeyError:
+    def _check_action(self, agent: str, a: Any) -> int:
+        arr = np.asarray(a)
+        if arr.ndim != 0 or not np.issubdtype(arr.dtype, np.integer):
+            raise ValueError(f"Action of {agent} must be an int in [0, {N_ACTIONS}), got {a!r}.")
+        if not 0 <= int(a) < N_ACTIONS:
             raise ValueError(
-                f"Unknown agent {agent!r}; this env's agents are {self.possible_agents}."
-            ) from None
-
-    def _check_actions(self, actions: dict[str, int], live: list[str]) -> dict[str, int]:
-        missing = [a for a in live if a not in actions]
-        if missing:
-            raise ValueError(f"No action given for active agent(s) {missing}; give one each.")
-        out = {}
-        for agent, a in actions.items():
-            self._agent_index(agent)
-            if agent not in live:
-                continue
-            arr = np.asarray(a)
-            if arr.ndim != 0 or not np.issubdtype(arr.dtype, np.integer):
-                raise ValueError(f"Action of {agent} must be an int in [0, {N_ACTIONS}), "
-                                 f"got {a!r}.")
-            a = int(a)
-            if not 0 <= a < N_ACTIONS:
-                raise ValueError(
-                    f"Action {a} of {agent} is out of range; use 0..{N_ACTIONS - 1} "
-                    f"({', '.join(ACTION_NAMES)})."
-                )
-            out[agent] = a
-        return out
+                f"Action {int(a)} of {agent} is out of range; use 0..{N_ACTIONS - 1} "
+                f"({', '.join(ACTION_NAMES)})."
+            )
+        return int(a)
 
 
 def _check_reward_weights(weights: Any, n: int) -> np.ndarray:
