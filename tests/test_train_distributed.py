@@ -205,3 +205,63 @@ def test_torchrun_learners_on_their_own_shard_files(tmp_path, simulated):
         [want["methods"]["D-ICRL"], want["history"]["D-ICRL"],
          want["consensus_max_pairwise_cost_distance"]])
     assert not diffs, "\n".join(diffs[:30])
+
+
+def test_two_torchrun_nodes_each_holding_only_its_own_file(tmp_path, simulated):
+    """Multi-node torchrun, emulated by two launchers on this machine (static rendezvous,
+    fixed --node_rank, node 1 started first), each in a directory that holds only its
+    own learner's file under the same relative path: the simulated run's D-ICRL rows and
+    history. With the node ranks swapped both learners stop at start-up, each naming the
+    file it lacks."""
+    import socket
+
+    from dicrl_torch.demos import (
+        load_demonstrations,
+        partition_demonstrations,
+        save_demonstrations,
+    )
+
+    if not TORCHRUN.exists():
+        pytest.skip(f"no torchrun next to {sys.executable}")
+    demos = load_demonstrations(simulated / "demos.npz")
+    for v, shard in enumerate(partition_demonstrations(demos, [4, 6])):
+        (tmp_path / f"node{v}" / "local").mkdir(parents=True)
+        save_demonstrations(tmp_path / f"node{v}" / "local" / f"learner{v}.npz", shard)
+
+    def launch(run_dir: Path, rank_of_node: dict[int, int]) -> list:
+        """Both nodes' torchrun, node 1 first; their completed processes, node 0 first."""
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+        procs = {}
+        for node in (1, 0):
+            cmd = [str(TORCHRUN), "--nnodes", "2", "--nproc_per_node", "1",
+                   "--node_rank", str(rank_of_node[node]), "--master_addr", "127.0.0.1",
+                   "--master_port", str(port), str(ROOT / "experiments" / "train.py"),
+                   f"hydra.run.dir={run_dir}", *TINY, "comm=distributed",
+                   "algo.run_c_icrl=false",
+                   "shard_files=[local/learner0.npz,local/learner1.npz]"]
+            # Files, not pipes: a node blocked on a full pipe would stall the other.
+            with open(run_dir.parent / f"{run_dir.name}_node{node}.log", "w") as log:
+                procs[node] = subprocess.Popen(cmd, cwd=tmp_path / f"node{node}",
+                                               stdout=log, stderr=subprocess.STDOUT)
+        return [subprocess.CompletedProcess(
+                    procs[node].args, procs[node].wait(timeout=300), None,
+                    (run_dir.parent / f"{run_dir.name}_node{node}.log").read_text())
+                for node in (0, 1)]
+
+    run_dir = tmp_path / "run"
+    for node, out in enumerate(launch(run_dir, {0: 0, 1: 1})):
+        assert out.returncode == 0, f"node {node}: {out.stderr[-3000:]}"
+    got, want = (json.loads((p / "results.json").read_text()) for p in (run_dir, simulated))
+    diffs = differences([got["methods"]["D-ICRL"], got["history"]["D-ICRL"]],
+                        [want["methods"]["D-ICRL"], want["history"]["D-ICRL"]])
+    assert not diffs, "\n".join(diffs[:30])
+
+    swapped = tmp_path / "swapped"
+    for node, out in enumerate(launch(swapped, {0: 1, 1: 0})):
+        rank = 1 - node
+        assert out.returncode != 0
+        assert (f"learner process {rank}: shard_files: no such file local/learner{rank}.npz"
+                in out.stderr), out.stderr[-3000:]
+    assert not (swapped / "results.json").exists()
