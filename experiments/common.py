@@ -17,6 +17,29 @@ def build(cfg, **objects):
     return instantiate(cfg, _partial_=True)(**objects)
 
 
+@dataclasses.dataclass
+class GridParts:
+    """The grid world's pieces as every grid entry point builds them from the config."""
+
+    layout: Any
+    model: Any
+    solver: Any
+    reward_basis: Any
+    cost_basis: Any
+    true_reward_weights: Any  # [N * l_r] ω_rE in the reward basis' layout
+
+
+def build_grid(cfg) -> GridParts:
+    """Layout, the learner's model, the solver and both feature bases from ``cfg``."""
+    layout = instantiate(cfg.env.layout)
+    model = build(cfg.env.model, layout=layout)
+    reward_basis = build(cfg.features.reward, model=model)
+    return GridParts(
+        layout=layout, model=model, solver=build(cfg.solver, model=model),
+        reward_basis=reward_basis, cost_basis=build(cfg.features.cost, model=model),
+        true_reward_weights=reward_basis.true_weights(tuple(cfg.env.true_reward_weights)))
+
+
 def atomic_write(path: Path, write: Callable[[Path], Any]) -> None:
     """``write(tmp)`` then rename ``tmp`` to ``path``: readers see the old file or the new
     one, never half of one. An exception (or an interrupting signal) removes ``tmp``."""

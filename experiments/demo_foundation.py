@@ -17,9 +17,8 @@ from pathlib import Path
 import hydra
 import numpy as np
 import torch
-from common import build
+from common import build_grid
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
@@ -39,12 +38,10 @@ def visitation(states: np.ndarray, n_cells: int) -> np.ndarray:
 def main(cfg: DictConfig) -> None:
     t_start = time.perf_counter()
     out = Path(HydraConfig.get().runtime.output_dir)
-    layout = instantiate(cfg.env.layout)
-    model = build(cfg.env.model, layout=layout)
-    solver = build(cfg.solver, model=model)
-    reward_basis = build(cfg.features.reward, model=model)
-    cost_basis = build(cfg.features.cost, model=model)
-    w_true = reward_basis.true_weights(tuple(cfg.env.true_reward_weights))
+    grid = build_grid(cfg)
+    layout, model, solver = grid.layout, grid.model, grid.solver
+    reward_basis, cost_basis, w_true = grid.reward_basis, grid.cost_basis, \
+        grid.true_reward_weights
     reward_table = reward_basis().weighted(w_true).local[:, :, 0]  # state reward [N, S1]
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)

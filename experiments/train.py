@@ -56,8 +56,10 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from common import (
+    GridParts,
     atomic_write,
     build,
+    build_grid,
     make_logger,
     print_table,
     trainer_settings,
@@ -421,14 +423,9 @@ def training_config(cfg) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------- the problem
 @dataclass
-class Problem:
+class Problem(GridParts):
     """What every process rebuilds identically from the config and its seed."""
 
-    layout: Any
-    model: Any
-    solver: Any
-    reward_basis: Any
-    cost_basis: Any
     experts: Any  # None in a learner process on its own shard file (rank >= 1)
     nominal: Any
     demos: Demonstrations | None  # None: a learner process that read only its own file
@@ -443,12 +440,10 @@ def build_problem(cfg, rank: int | None = None) -> Problem:
     :func:`shard_files_read_by` names: the other learners' entries of ``shards`` are None,
     and so is ``demos`` unless every file was read.
     """
-    layout = instantiate(cfg.env.layout)
-    model = build(cfg.env.model, layout=layout)
-    solver = build(cfg.solver, model=model)
-    reward_basis = build(cfg.features.reward, model=model)
-    cost_basis = build(cfg.features.cost, model=model)
-    w_true = reward_basis.true_weights(tuple(cfg.env.true_reward_weights))
+    grid = build_grid(cfg)
+    layout, model, solver = grid.layout, grid.model, grid.solver
+    reward_basis, cost_basis, w_true = grid.reward_basis, grid.cost_basis, \
+        grid.true_reward_weights
     split = list(cfg.split)
     if sum(split) != cfg.n_demonstrations:
         raise ValueError(f"split {split} sums to {sum(split)}, not n_demonstrations="
@@ -475,8 +470,7 @@ def build_problem(cfg, rank: int | None = None) -> Problem:
     ctx = {"model": model, "layout": layout, "episodes": cfg.eval_episodes,
            "reward_table": reward_basis().weighted(w_true).local[:, :, 0],
            "seed": cfg.seed, "w_true": w_true, "true": cost_basis.true_constraints().numpy()}
-    return Problem(layout=layout, model=model, solver=solver, reward_basis=reward_basis,
-                   cost_basis=cost_basis, experts=experts, nominal=nominal, demos=demos,
+    return Problem(**vars(grid), experts=experts, nominal=nominal, demos=demos,
                    shards=shards, ctx=ctx)
 
 
