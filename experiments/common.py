@@ -28,6 +28,10 @@ class GridParts:
     cost_basis: Any
     true_reward_weights: Any  # [N * l_r] ω_rE in the reward basis' layout
 
+    def true_reward_table(self):
+        """``[N, S1]`` each expert's true reward in each cell (the reward is a state's)."""
+        return self.reward_basis().weighted(self.true_reward_weights).local[:, :, 0]
+
 
 def build_grid(cfg) -> GridParts:
     """Layout, the learner's model, the solver and both feature bases from ``cfg``."""

@@ -40,9 +40,8 @@ def main(cfg: DictConfig) -> None:
     out = Path(HydraConfig.get().runtime.output_dir)
     grid = build_grid(cfg)
     layout, model, solver = grid.layout, grid.model, grid.solver
-    reward_basis, cost_basis, w_true = grid.reward_basis, grid.cost_basis, \
-        grid.true_reward_weights
-    reward_table = reward_basis().weighted(w_true).local[:, :, 0]  # state reward [N, S1]
+    reward_basis, cost_basis = grid.reward_basis, grid.cost_basis
+    w_true, reward_table = grid.true_reward_weights, grid.true_reward_table()
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     print(f"{layout.n_experts} experts on {layout.size}x{layout.size}: "

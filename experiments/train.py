@@ -441,9 +441,7 @@ def build_problem(cfg, rank: int | None = None) -> Problem:
     and so is ``demos`` unless every file was read.
     """
     grid = build_grid(cfg)
-    layout, model, solver = grid.layout, grid.model, grid.solver
-    reward_basis, cost_basis, w_true = grid.reward_basis, grid.cost_basis, \
-        grid.true_reward_weights
+    model, reward_basis, w_true = grid.model, grid.reward_basis, grid.true_reward_weights
     split = list(cfg.split)
     if sum(split) != cfg.n_demonstrations:
         raise ValueError(f"split {split} sums to {sum(split)}, not n_demonstrations="
@@ -453,7 +451,7 @@ def build_problem(cfg, rank: int | None = None) -> Problem:
     experts = nominal = None
     if cfg.get("shard_files") is None or rank in (None, 0):
         exp_solver = build(cfg.solver, model=model, dtype=torch.float64) \
-            if model.n_pairs < 5_000_000 else solver
+            if model.n_pairs < 5_000_000 else grid.solver
         experts = expert_solution(solver=exp_solver, reward_features=reward_basis(),
                                   reward_weights=w_true, temperature=cfg.expert_temperature)
         nominal = expert_solution(solver=exp_solver, reward_features=reward_basis(),
@@ -467,9 +465,9 @@ def build_problem(cfg, rank: int | None = None) -> Problem:
         shards = load_shard_files(list(cfg.shard_files), split, model,
                                   read=shard_files_read_by(cfg, rank))
         demos = None if None in shards else concatenate(shards)
-    ctx = {"model": model, "layout": layout, "episodes": cfg.eval_episodes,
-           "reward_table": reward_basis().weighted(w_true).local[:, :, 0],
-           "seed": cfg.seed, "w_true": w_true, "true": cost_basis.true_constraints().numpy()}
+    ctx = {"model": model, "layout": grid.layout, "episodes": cfg.eval_episodes,
+           "reward_table": grid.true_reward_table(), "seed": cfg.seed, "w_true": w_true,
+           "true": grid.cost_basis.true_constraints().numpy()}
     return Problem(**vars(grid), experts=experts, nominal=nominal, demos=demos,
                    shards=shards, ctx=ctx)
 
