@@ -92,6 +92,19 @@ _FORMATS = {"FPR": (7, ".2f"), "FNR": (7, ".2f"), "CVR": (8, ".3f"), "RFD": (8, 
             "SR": (7, ".2f")}
 
 
+def log_disagreement(logger, trainer, n: int) -> None:
+    """The network run's ``consensus/`` distances after outer iteration ``n``: of ω_c
+    and of η̄. Gathers from every learner, so every learner process must call it;
+    ``logger`` None: take part without logging (the processes that do not own
+    ``network``)."""
+    gaps = {tag: trainer.disagreement(field)
+            for tag, field in (("consensus/max_pairwise_cost_distance", "cost_weights"),
+                               ("consensus/max_pairwise_eta_distance", "eta"))}
+    if logger is not None:
+        for tag, gap in gaps.items():
+            logger.scalar("network", tag, gap, n)
+
+
 def print_table(methods: dict, columns: Sequence[str] = TABLE1_COLUMNS) -> None:
     """Print ``methods`` (``{name: {"D", "NATR", "learners": [row, ...]}}``) in the paper's
     layout: one line per learner, a metric that does not apply as N/A."""

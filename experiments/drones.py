@@ -28,7 +28,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import TABLE2_COLUMNS, build, make_logger, print_table, trainer_settings, write_json
+from common import (
+    TABLE2_COLUMNS,
+    build,
+    log_disagreement,
+    make_logger,
+    print_table,
+    trainer_settings,
+    write_json,
+)
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
@@ -119,8 +127,7 @@ def log_outer(logger, run_of, trainer: DICRL, info: dict, p: DroneProblem,
         logger.scalar(run_of(v), "outer/multiplier", info["multiplier"][i], n)
         logger.scalar(run_of(v), "outer/lga_norm", info["lga_norm"][i], n)
     if trainer.n_learners > 1:
-        logger.scalar("network", "consensus/max_pairwise_cost_distance",
-                      trainer.disagreement(), n)
+        log_disagreement(logger, trainer, n)
 
 
 def evaluate_true_game(solver: SACConstrainedSolver, cfg) -> tuple[dict, list[np.ndarray]]:

@@ -28,7 +28,8 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 # Tags that no run has (e.g. inner/ when the inner process is not logged) are skipped.
 DEFAULT_TAGS = ("outer/multiplier", "outer/lga_norm", "eval/FPR", "eval/FNR", "eval/RFD",
-                "eval/CR", "inner/dual_gradient_norm", "consensus/max_pairwise_cost_distance")
+                "eval/CR", "inner/dual_gradient_norm", "consensus/max_pairwise_cost_distance",
+                "consensus/max_pairwise_eta_distance")
 Series = tuple[np.ndarray, np.ndarray]  # (steps, values)
 
 

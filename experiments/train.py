@@ -60,6 +60,7 @@ from common import (
     atomic_write,
     build,
     build_grid,
+    log_disagreement,
     make_logger,
     print_table,
     trainer_settings,
@@ -806,9 +807,8 @@ def log_outer(logger, run_of: RunOf, trainer: DICRL, info: dict, log_network: bo
             if key in info:  # CR and CVR: only where rollouts_due
                 logger.scalar(run_of(v), tag, info[key][i], n)
     if trainer.n_learners > 1:
-        gap = trainer.disagreement()  # gathers every ω_c: each learner process takes part
-        if log_network:
-            logger.scalar("network", "consensus/max_pairwise_cost_distance", gap, n)
+        log_disagreement(logger if log_network else None, trainer, n)
+
 
 
 class Interrupted(Exception):

@@ -125,7 +125,8 @@ def test_train_runs_end_to_end(tmp_path):
         assert tags, prefix
         for tag in tags:
             assert {"learner0", "learner1"} <= runs_of[tag], tag
-    assert "network" in runs_of["consensus/max_pairwise_cost_distance"]
+    for tag in ("consensus/max_pairwise_cost_distance", "consensus/max_pairwise_eta_distance"):
+        assert runs_of[tag] == {"network"}, tag
 
 
 TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",

@@ -12,6 +12,7 @@ from dicrl_torch.algos.dicrl import DICRL, StepSizes
 from dicrl_torch.comm import (
     ALLOWED_FIELDS,
     CompleteSchedule,
+    DirectedCycleSchedule,
     GraphAssumptionError,
     MatrixSchedule,
     RingSchedule,
@@ -44,6 +45,27 @@ def test_same_seed_same_numbers_and_consensus(setup):
     # distinct initial ω_c: distinct inner processes, and their warm starts stay distinct
     assert [h["inner_processes"] for h in a.history] == [3, 3, 3]
 
+
+
+def test_disagreement_of_eta_is_the_pairwise_distance_that_the_inner_graph_leaves(setup):
+    """ω_c: the complete outer graph averages exactly; η̄: only the inner graph mixes it,
+    so a directed cycle (slow mixing, K = 3 steps) leaves the learners apart, and a
+    complete inner graph much less so."""
+    n = len(SPLIT)
+    gaps = {}
+    for name, inner in (("cycle", DirectedCycleSchedule(n_learners=n)),
+                        ("complete", CompleteSchedule(n_learners=n))):
+        t = make(setup, inner=inner)
+        t.train(2)
+        eta = t.state.eta_bar
+        brute = max(float(torch.linalg.vector_norm(eta[a] - eta[b]))
+                    for a in range(n) for b in range(n))
+        assert t.disagreement("eta") == pytest.approx(brute, rel=1e-12)
+        assert t.disagreement("cost_weights") == 0.0
+        gaps[name] = brute
+    assert gaps["cycle"] > 0 and gaps["complete"] < gaps["cycle"]
+    with pytest.raises(ValueError, match="field must be one of"):
+        t.disagreement("eta_bar")
 
 def test_merging_identical_inner_processes_changes_nothing(setup):
     # a common start: one inner process serves all learners, bit for bit

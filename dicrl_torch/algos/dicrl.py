@@ -498,7 +498,18 @@ class DICRL:
                 pruned.append(j)
         return kept, pruned
 
-    def disagreement(self) -> float:
-        """max pairwise ‖ω_c^[v] − ω_c^[v']‖ over all learners."""
-        cw = self.comm.all_gather(self.state.cost_weights, "cost_weights")
-        return float(torch.cdist(cw, cw).max())
+    def disagreement(self, field: str = "cost_weights") -> float:
+        """Max pairwise distance over all learners (a collective: every learner process
+        must call it).
+
+        Args:
+            field: ``"cost_weights"``: ‖ω_c^[v] − ω_c^[v']‖, which the outer consensus
+                drives to 0; ``"eta"``: ‖η̄^[v] − η̄^[v']‖ of the last inner processes'
+                outputs (``η̄ = (ω_r, λ)``), which only the inner graph W(k) mixes, so a
+                sparse or slowly mixing inner graph shows here.
+        """
+        values = {"cost_weights": self.state.cost_weights, "eta": self.state.eta_bar}
+        if field not in values:
+            raise ValueError(f"field must be one of {sorted(values)}, got {field!r}.")
+        gathered = self.comm.all_gather(values[field], field)
+        return float(torch.cdist(gathered, gathered).max())
