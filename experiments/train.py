@@ -31,16 +31,10 @@ iteration, the inner step and the learner.
 
 from __future__ import annotations
 
-import copy
-import difflib
-import hashlib
-import inspect
 import json
-import math
 import os
 import shlex
 import shutil
-import signal
 import sys
 import threading
 import time
@@ -55,9 +49,15 @@ import hydra
 import numpy as np
 import torch
 import torch.distributed as dist
+from checkpoints import (
+    Checkpoints,
+    Interrupted,
+    StopOnSignal,
+    interrupt_on_signals,
+    training_config,
+)
 from common import (
     GridParts,
-    atomic_write,
     build,
     build_grid,
     log_disagreement,
@@ -66,8 +66,16 @@ from common import (
     trainer_settings,
     write_json,
 )
+from config_checks import (
+    BASELINES,
+    check_config,
+    is_drone_run,
+    is_simulated,
+    shard_files_read_by,
+    torchrun_rank,
+)
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import get_class, get_object, instantiate
+from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dicrl_torch.algos.dicrl import DICRL, NonFiniteError
@@ -103,323 +111,6 @@ from dicrl_torch.metrics import (
 )
 
 RunOf = Callable[[int], str]  # learner id -> TensorBoard run name
-
-
-# ---------------------------------------------------------------------- config checks
-class ConfigError(ValueError):
-    """The configuration has an unknown key or a value out of range."""
-
-
-def _ge(lo):
-    return lambda x: x >= lo
-
-
-def _in_open(lo, hi):
-    return lambda x: lo < x < hi
-
-
-# key, type, condition, what it must be (and why), an example value. Checked before any
-# computation: a bad value would otherwise surface minutes later, deep in the solver.
-VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
-    ("seed", int, _ge(0), "an int >= 0 (it seeds the demonstrations and evaluation)", "0"),
-    ("n_demonstrations", int, _ge(1), "an int >= 1", "100"),
-    ("eval_episodes", int, _ge(1), "an int >= 1 (evaluation episodes per table row)", "200"),
-    ("eval_every", int, _ge(1),
-     "an int >= 1 (outer iterations between the CR/CVR evaluations of the curves)", "5"),
-    ("expert_temperature", float, _ge(0.0), "a number >= 0 (0: optimal experts)", "0.0"),
-    ("checkpoint_every", int, _ge(1), "an int >= 1 (outer iterations between checkpoints)",
-     "1"),
-    ("resume", bool, None, "true or false", "true"),
-    ("env.layout.n_experts", int, lambda x: x in (1, 2, 3),
-     "1, 2 or 3 (the experts of the layout's table, taken in order)", "2"),
-    ("env.model.horizon", int, _ge(1), "an int >= 1 (the horizon T, decisions per episode)",
-     "40"),
-    # γ = 1 is well defined over a finite horizon, and TabularGridModel accepts it.
-    ("env.model.gamma", float, lambda x: 0 < x <= 1, "a number in (0, 1] (the discount γ)",
-     "0.99"),
-    ("env.model.p_success", float, lambda x: 0 < x <= 1,
-     "a number in (0, 1] (the probability that a move succeeds)", "0.8"),
-    ("algo.outer_iterations", int, _ge(1), "an int >= 1", "20"),
-    ("algo.inner_steps", int, _ge(2), "an int >= 2 (K: Algorithm 2 takes K - 1 steps)", "6"),
-    ("algo.inner_step", float, _in_open(0.0, math.inf),
-     "a positive number (the constant step of inner_method=gradient_tracking)", "0.005"),
-    ("algo.steps.alpha_bar", float, _in_open(0.0, math.inf),
-     "a positive number (α(k) = ᾱ/(k+1))", "0.02"),
-    ("algo.steps.multiplier_scale", float, _in_open(0.0, math.inf),
-     "a positive number (the λ coordinate's step is scaled by it; 1: the paper's)", "1.0"),
-    ("algo.steps.beta_bar", float, _in_open(0.0, 1.0),
-     "a number in (0, 1) so that β(n) ∈ (0, 1) (Theorem 1)", "0.5"),
-    ("algo.steps.beta_power", float, lambda x: 0.5 < x <= 1,
-     "a number in (1/2, 1] so that Σβ = ∞ and Σβ² < ∞ (Theorem 1)", "0.6"),
-    ("algo.lsca_curvature", float, _in_open(0.0, math.inf),
-     "a positive number (ρ of the LSCA step)", "300.0"),
-    ("algo.prune_accrued", bool, None, "true or false", "true"),
-    ("algo.init_cost_weights", float, lambda x: 0 <= x <= 1,
-     "a number in [0, 1] (ω_c(0) lives in [0, 1]^d)", "0.0"),
-    ("algo.init_reward_weights", float, None, "a finite number", "0.0"),
-    ("algo.init_multiplier", float, None, "a finite number (λ(0))", "-1.0"),
-    ("algo.threshold", float, _in_open(0.0, 1.0),
-     "a number in (0, 1) (ω_c,j >= threshold marks a learned constraint)", "0.5"),
-    ("algo.prune_min_gain", float | None, _ge(0.0),
-     "null (keep every constraint) or a number >= 0 (nats per trajectory)", "0.001"),
-    ("algo.run_c_icrl", bool, None, "true or false", "true"),
-    ("algo.inner_method", str, lambda x: x in ("paper", "gradient_tracking"),
-     "'paper' or 'gradient_tracking'", "paper"),
-    ("comm.timeout_s", float, _in_open(0.0, math.inf),
-     "a positive number of seconds", "60"),
-    ("baselines.epsilon", float | None, _ge(0.0),
-     "null (BIC: ln(m)/(2m)) or a number >= 0 (nats per trajectory)", "0.023"),
-    ("baselines.max_constraints", int | None, _ge(0),
-     "null (no limit) or an int >= 0", "20"),
-]
-
-# Rules of the drone arena only (env=drones), and the grid world's keys it has not.
-DRONE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
-    ("solver.timesteps", int, _ge(1), "an int >= 1 (SAC env steps per solve)", "2000"),
-    ("solver.eval_action", str, lambda x: x in ("mean", "sampled"),
-     "'mean' or 'sampled' (the actions of the table's SR and CVR rollouts)", "mean"),
-    ("solver.final_timesteps", int, _ge(1),
-     "an int >= 1 (SAC steps of the last solve, on the learned (η̄, ω_c))", "2000"),
-    ("solver.final_checks", int, _ge(1),
-     "an int >= 1 (scored chunks of the last solve; 1: no selection)", "1"),
-    ("solver.final_restarts", int, _ge(1),
-     "an int >= 1 (independent continuations of the last solve; 1: the solver's own)", "1"),
-    ("solver.final_score", str, lambda x: x in ("penalised_return", "learned_success"),
-     "'penalised_return' or 'learned_success' (how the last solve's chunks are ranked)",
-     "learned_success"),
-    ("solver.warmup_timesteps", int, _ge(0), "an int >= 0 (SAC pre-training steps)",
-     "30000"),
-    ("solver.n_eval_episodes", int, _ge(1), "an int >= 1 (rollouts per estimate)", "10"),
-    ("env.arena.max_steps", int, _ge(1), "an int >= 1 (episode limit in steps)", "300"),
-    ("baselines.penalty", float, _in_open(0.0, math.inf),
-     "a positive number (reward units per step in a constrained cell)", "10.0"),
-    ("baselines.timesteps", int, _ge(1), "an int >= 1 (SAC steps per greedy trial)", "3000"),
-]
-GRID_ONLY = ("env.model.", "env.layout.")
-
-# The baselines' table rows (names as in the paper) and the greedy's demonstrator model.
-BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
-DRONE_BASELINES = ("M(C)E-greedy",)  # the arena is (nearly) deterministic: ME = MCE
-
-# Keys of nodes without a _target_ (those with one are checked against its signature).
-KNOWN_KEYS = {
-    "": {"env", "features", "solver", "algo", "graph", "comm", "logger", "name", "seed",
-         "n_demonstrations", "split", "eval_episodes", "eval_every", "expert_temperature",
-         "checkpoint_every", "resume", "baselines", "shard_files"},
-    "env": {"layout", "model", "true_reward_weights", "arena"},
-    # the drones' solver node (the grid's has a _target_, checked against its signature)
-    "solver": {"timesteps", "warmup_timesteps", "final_timesteps", "final_checks",
-               "final_restarts", "final_score", "n_eval_episodes", "eval_action", "solver"},
-    "features": {"reward", "cost"},
-    "graph": {"inner", "outer"},
-    "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",
-             "lsca_curvature", "prune_accrued", "init_cost_weights", "init_reward_weights",
-             "init_multiplier", "threshold", "prune_min_gain", "run_c_icrl"},
-    "baselines": {"run", "epsilon", "max_constraints", "penalty", "timesteps"},
-}
-_HYDRA_KEYS = {"_target_", "_partial_", "_args_", "_recursive_", "_convert_"}
-
-
-def _type_ok(value, kind) -> bool:
-    if value is None:
-        return kind == float | None or kind == int | None
-    kind = {float | None: float, int | None: int}.get(kind, kind)
-    if kind is bool or kind is str:
-        return isinstance(value, kind)
-    if isinstance(value, bool):  # bool is an int to Python, never a number here
-        return False
-    if kind is int:
-        return isinstance(value, int)
-    return isinstance(value, int | float) and math.isfinite(value)
-
-
-def _unknown_keys(node, path: str, problems: list[str]) -> None:
-    """Keys of ``node`` (and below) that nothing reads: a misspelt or stray override would
-    otherwise be ignored (``+key=...`` gets past Hydra's struct mode)."""
-    if not isinstance(node, DictConfig):
-        return
-    keys = set(node.keys())
-    known, reader = KNOWN_KEYS.get(path), f"'{path}'" if path else "the top level"
-    if "_target_" in node:
-        target = node["_target_"]
-        try:
-            params = inspect.signature(get_object(target)).parameters
-        except Exception as e:  # noqa: BLE001 - any import failure is a config error
-            problems.append(f"{path}._target_={target!r} cannot be imported ({e}); fix the "
-                            f"class path.")
-            return
-        if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-            known = None
-        else:
-            known, reader = set(params) | _HYDRA_KEYS, target
-    if known is not None:
-        for key in sorted(keys - known):
-            full = f"{path}.{key}" if path else key
-            close = difflib.get_close_matches(key, sorted(known - _HYDRA_KEYS), n=1)
-            hint = f"did you mean '{close[0]}'? Remove" if close else "remove"
-            problems.append(f"unknown key '{full}': {reader} takes no option '{key}'; "
-                            f"{hint} it or fix its spelling.")
-    for key in keys:
-        _unknown_keys(node[key], f"{path}.{key}" if path else key, problems)
-
-
-def _check_shard_files(cfg, drones: bool, problems: list[str]) -> None:
-    """``shard_files``: null, or one existing ``.npz`` per learner, each listed once. Their
-    contents are checked when loaded (:func:`load_shard_files`), still before any solve."""
-    files = cfg.get("shard_files")
-    if files is None:
-        return
-    if drones:
-        problems.append("shard_files is for the grid world; the arena's demonstrations come "
-                        "from its planner. Set shard_files=null.")
-        return
-    if not (OmegaConf.is_list(files) and len(files) >= 1
-            and all(isinstance(f, str) and f for f in files)):
-        problems.append(f"shard_files={_plain(files)} is invalid: it must be null or a list of "
-                        f".npz paths, one per learner; set e.g. shard_files=[a.npz,b.npz].")
-        return
-    split = cfg.get("split")
-    if OmegaConf.is_list(split) and len(files) != len(split):
-        problems.append(f"shard_files lists {len(files)} files but split={_plain(split)} has "
-                        f"{len(split)} learners; give one file per learner, in learner order.")
-    if len(set(files)) != len(files):
-        problems.append(f"shard_files={_plain(files)} lists a file twice; each learner holds "
-                        f"its own share of the demonstrations.")
-    rank = torchrun_rank(cfg)
-    reads = shard_files_read_by(cfg, rank)
-    missing = [files[v] for v in reads if not Path(files[v]).is_file()]
-    if missing:
-        who = "" if rank is None else f"learner process {rank}: "
-        pooled = "" if rank != 0 or len(reads) == 1 else (
-            " Rank 0 reads every file because it pools them for C-ICRL and the baselines; "
-            "make them reachable from its machine, or set algo.run_c_icrl=false "
-            "baselines=none.")
-        problems.append(f"{who}shard_files: no such file {', '.join(missing)} (relative paths "
-                        f"are taken from the directory the run is started in, "
-                        f"{Path.cwd()}).{pooled}")
-
-
-def torchrun_rank(cfg) -> int | None:
-    """This process's learner id when torchrun started it for ``comm=distributed``."""
-    if is_drone_run(cfg) or "RANK" not in os.environ:
-        return None
-    try:
-        simulated = is_simulated(cfg)
-    except Exception:  # noqa: BLE001 - a bad comm target is reported by the key checks
-        return None
-    return None if simulated else int(os.environ["RANK"])
-
-
-def shard_files_read_by(cfg, rank: int | None) -> list[int]:
-    """Which of ``shard_files`` a process reads. A learner process (``rank``) reads only its
-    own, so on several machines a file need only lie on its learner's machine. The process
-    that finishes the run (``rank`` None, or torchrun's rank 0) reads every file when it
-    pools them for C-ICRL or the baselines."""
-    n = len(cfg.shard_files)
-    pools = bool(cfg.algo.run_c_icrl) or bool(
-        OmegaConf.select(cfg, "baselines.run", default=None))
-    if rank is None or (rank == 0 and pools):
-        return list(range(n))
-    return [rank] if rank < n else []
-
-
-def is_drone_run(cfg) -> bool:
-    """The drone arena (``env=drones``) rather than the grid world."""
-    return OmegaConf.select(cfg, "env.arena", default=None) is not None
-
-
-def is_simulated(cfg) -> bool:
-    return not issubclass(get_class(cfg.comm._target_), DistributedCommunicator)
-
-
-def check_config(cfg: DictConfig) -> None:
-    """Refuse unknown keys and out-of-range values before anything is computed.
-
-    Raises:
-        ConfigError: listing every problem, each naming the key, the value and the fix.
-    """
-    problems: list[str] = []
-    _unknown_keys(cfg, "", problems)
-    drones = is_drone_run(cfg)
-    rules = VALUE_RULES + DRONE_RULES if drones else VALUE_RULES
-    for key, kind, ok, must, example in rules:
-        if drones and key.startswith(GRID_ONLY):
-            continue
-        if OmegaConf.select(cfg, key, default="__missing__") == "__missing__":
-            if key != "comm.timeout_s":  # only the distributed backend has a timeout
-                problems.append(f"'{key}' is missing; set it, e.g. {key}={example}.")
-            continue
-        value = OmegaConf.select(cfg, key)
-        if not _type_ok(value, kind) or (ok is not None and value is not None and not ok(value)):
-            problems.append(f"{key}={value!r} is invalid: it must be {must}; set e.g. "
-                            f"{key}={example}.")
-    split = cfg.get("split")
-    if not (OmegaConf.is_list(split) and len(split) >= 1
-            and all(_type_ok(x, int) and x >= 1 for x in split)):
-        problems.append(f"split={_plain(split)} is invalid: it must be a non-empty list of "
-                        f"ints >= 1, one per learner (a learner without trajectories has "
-                        f"nothing to learn from); set e.g. split=[10,20,30,40].")
-    elif _type_ok(cfg.get("n_demonstrations"), int) and sum(split) != cfg.n_demonstrations:
-        problems.append(f"split={_plain(split)} sums to {sum(split)}, not n_demonstrations="
-                        f"{cfg.n_demonstrations}; make them agree (e.g. n_demonstrations="
-                        f"{sum(split)}).")
-    _check_shard_files(cfg, drones, problems)
-    run = OmegaConf.select(cfg, "baselines.run", default=None)
-    names, example = (list(DRONE_BASELINES), "baselines=greedy_drones") if drones else \
-        (list(BASELINES), "baselines=greedy")
-    if not (OmegaConf.is_list(run) and all(isinstance(x, str) and x in names for x in run)
-            and len(set(run)) == len(run)):
-        problems.append(f"baselines.run={_plain(run)} is invalid: it must be a list of "
-                        f"distinct names among {names} (the rows to add; [] for "
-                        f"none); set e.g. {example} or baselines=none.")
-    checks = OmegaConf.select(cfg, "solver.final_checks", default=None)
-    final = OmegaConf.select(cfg, "solver.final_timesteps", default=None)
-    if drones and _type_ok(checks, int) and _type_ok(final, int) and 1 <= final < checks:
-        problems.append(f"solver.final_checks={checks} exceeds solver.final_timesteps={final}: "
-                        f"each scored chunk needs at least one step; lower final_checks.")
-    if drones and not is_simulated(cfg):
-        problems.append("comm=distributed is not supported for the drone arena yet (its SAC "
-                        "solvers are not checkpointed across processes); use comm=simulated.")
-    if problems:
-        raise ConfigError(f"{len(problems)} problem(s) in the configuration, nothing was "
-                          f"computed:\n" + "\n".join(f"  - {p}" for p in problems))
-
-
-def _plain(value):
-    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
-
-
-# What a checkpoint's training state depends on. Left out: how the run is started,
-# logged, evaluated or stopped (resume, logger, eval_episodes, eval_every, threshold, ...),
-# and algo.outer_iterations, so that a finished run can be resumed to train for longer.
-# The history's metrics (FPR/FNR/RFD every outer iteration, CR/CVR every eval_every) are
-# evaluations: each was taken with the settings of the run that computed its iteration,
-# and the same overrides on resume give the uninterrupted run's history exactly.
-CHECKPOINT_KEYS = ("seed", "n_demonstrations", "split", "expert_temperature", "env", "features",
-                   "solver", "graph", "algo")
-CHECKPOINT_IGNORED = ("solver.progress", "algo.outer_iterations", "algo.threshold",
-                      "algo.prune_min_gain", "algo.run_c_icrl")
-
-
-def training_config(cfg) -> dict[str, Any]:
-    """The flattened ``key -> value`` config that a checkpoint must match to resume."""
-    flat: dict[str, Any] = {}
-
-    def walk(node, path):
-        if isinstance(node, dict):
-            for k, v in node.items():
-                walk(v, f"{path}.{k}" if path else str(k))
-        elif path not in CHECKPOINT_IGNORED:
-            flat[path] = node
-
-    container = OmegaConf.to_container(cfg, resolve=True)
-    walk({k: container[k] for k in CHECKPOINT_KEYS if k in container}, "")
-    if container.get("shard_files") is not None:
-        # Own demonstrations: the state depends on the files' contents, not on their paths.
-        flat["shard_files.sha256"] = [hashlib.sha256(Path(f).read_bytes()).hexdigest()[:16]
-                                      if Path(f).is_file() else None
-                                      for f in container["shard_files"]]
-    return flat
 
 
 # ---------------------------------------------------------------------- the problem
@@ -682,91 +373,6 @@ def run_baselines(cfg, p: Problem, logger, out: Path) -> tuple[dict, dict]:
 
 
 # ---------------------------------------------------------------------- training
-class Checkpoints:
-    """Trainer states by name in one file, written atomically (to a temporary file, then
-    renamed: a crash leaves the previous checkpoint intact).
-
-    Args:
-        path: the checkpoint file.
-        resume: load ``path`` if it exists.
-        keep_previous: also keep each name's previous save (``<name>:previous``), so that
-            learner processes whose last saves are one save apart can agree on a state.
-        crash_tags: extra names for the ``DICRL_CRASH_AFTER=<name>:<n>`` fault injection
-            (tests): the process sends itself SIGKILL (or ``DICRL_CRASH_SIGNAL``, e.g.
-            ``TERM``) right after saving ``n``, once.
-        config: :func:`training_config` of this run; a checkpoint written under another one
-            is refused on resume (its state would silently continue another problem).
-
-    Raises:
-        ValueError: the checkpoint cannot be read, or was written under another config.
-    """
-
-    def __init__(self, path: Path, resume: bool, *, keep_previous: bool = False,
-                 crash_tags: tuple[str, ...] = (), config: dict | None = None) -> None:
-        self.path, self.keep_previous, self.crash_tags = path, keep_previous, crash_tags
-        self.config, self.crashed = config, False
-        self.saved: dict = {}
-        if resume and path.exists():
-            self.saved = self._load(path)
-            for state in self.saved.values():
-                self._check_config(state.get("run_config"))
-            done = {k: v["outer_iteration"] for k, v in self.saved.items()
-                    if not k.endswith(":previous")}
-            print(f"resuming from {path} (outer iterations done: {done})")
-        elif resume:
-            print(f"resume=true but no checkpoint {path.name} in {path.parent}; starting "
-                  f"from scratch")
-
-    def _check_config(self, saved: dict | None) -> None:
-        if self.config is None or saved is None or saved == self.config:
-            return
-        keys = sorted(k for k in set(saved) | set(self.config)
-                      if saved.get(k, "<unset>") != self.config.get(k, "<unset>"))
-        diff = "; ".join(f"{k}: {saved.get(k, '<unset>')!r} in the checkpoint, "
-                         f"{self.config.get(k, '<unset>')!r} now" for k in keys[:6])
-        raise ValueError(
-            f"{self.path} was written with a different configuration ({diff}"
-            f"{'; ...' if len(keys) > 6 else ''}). Resume with the overrides of the "
-            f"interrupted run, or start a new run without resume=true (in another "
-            f"hydra.run.dir).")
-
-    @staticmethod
-    def _load(path: Path) -> dict:
-        try:
-            # weights_only: tensors and plain containers, never arbitrary pickled objects
-            saved = torch.load(path, weights_only=True)
-        except Exception as e:
-            raise ValueError(
-                f"{path} cannot be read as a checkpoint ({type(e).__name__}: "
-                f"{str(e).strip().splitlines()[0] if str(e).strip() else ''}); it is not one "
-                f"this program wrote. Delete it to start over, or point hydra.run.dir at the "
-                f"run it belongs to.") from e
-        if not (isinstance(saved, dict) and all(isinstance(v, dict) and "outer_iteration" in v
-                                                for v in saved.values())):
-            raise ValueError(f"{path} holds no trainer states ({type(saved).__name__}), so it "
-                             f"is not a checkpoint of this program; delete it to start over.")
-        return saved
-
-    def states(self, name: str) -> list[dict]:
-        """The saved states of ``name``, newest first."""
-        return [self.saved[k] for k in (name, f"{name}:previous") if k in self.saved]
-
-    def save(self, name: str, trainer: DICRL) -> None:
-        n = trainer.state.outer_iteration
-        last = self.saved.get(name)
-        if self.keep_previous and last is not None and last["outer_iteration"] != n:
-            self.saved[f"{name}:previous"] = last
-        # A copy: the trainer goes on changing its history list and, when pruning, ω_c in
-        # place, and this state may be written again (with another name's save).
-        self.saved[name] = {**copy.deepcopy(trainer.state_dict()), "run_config": self.config}
-        atomic_write(self.path, lambda tmp: torch.save(self.saved, tmp))
-        crash = os.environ.get("DICRL_CRASH_AFTER")  # fault injection for tests
-        if not self.crashed and crash in {f"{tag}:{n}" for tag in (name, *self.crash_tags)}:
-            self.crashed = True
-            sig = getattr(signal, "SIG" + os.environ.get("DICRL_CRASH_SIGNAL", "KILL"))
-            os.kill(os.getpid(), sig)
-
-
 def policy_of(solution) -> Callable:
     """The ``policy_at`` of what ``DICRL.policy`` returns: a learner model's solution
     wrapping its soft-Bellman solution (``.soft_bellman``), or that solution itself."""
@@ -809,68 +415,6 @@ def log_outer(logger, run_of: RunOf, trainer: DICRL, info: dict, log_network: bo
     if trainer.n_learners > 1:
         log_disagreement(logger if log_network else None, trainer, n)
 
-
-
-class Interrupted(Exception):
-    """SIGINT or SIGTERM stopped the run.
-
-    Attributes:
-        signum: the signal.
-        saved: what was checkpointed on the way out (None: stopped at once; the last
-            atomic checkpoint stays valid).
-    """
-
-    def __init__(self, signum: int, saved: str | None = None) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum, self.saved = signum, saved
-
-
-class StopOnSignal:
-    """SIGINT/SIGTERM handling of the all-in-one-process run (a context manager).
-
-    The first signal during training lets the current outer iteration finish (a state
-    in the middle of one is no consistent checkpoint; an iteration takes seconds), then
-    :func:`train` checkpoints it and raises :class:`Interrupted`. A second signal, or one
-    outside training, raises at once: every checkpoint is written atomically, so the
-    last one stays valid, and everything after training is recomputed on resume.
-    """
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self.training = False
-        self._previous: dict = {}
-
-    def __enter__(self) -> StopOnSignal:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-    def _handle(self, signum: int, frame) -> None:
-        if self.training and self.signum is None:
-            self.signum = signum
-            print(f"\n{signal.Signals(signum).name} received: stopping after this outer "
-                  f"iteration, with a checkpoint (send it again to stop at once)",
-                  file=sys.stderr, flush=True)
-            return
-        raise Interrupted(signum)
-
-
-def interrupt_on_signals() -> None:
-    """SIGINT/SIGTERM raise :class:`Interrupted` at once (learner processes of a
-    distributed run). A learner cannot finish its outer iteration alone: the others
-    would wait for it at the next exchange. Its checkpoints are written atomically, so
-    the last one stays valid, and resume lets a learner that is one save behind catch up.
-    """
-
-    def handle(signum: int, frame) -> None:
-        raise Interrupted(signum)
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, handle)
 
 
 def train(name: str, trainer: DICRL, ckpt: Checkpoints, logger, run_of: RunOf, cfg,

@@ -166,9 +166,9 @@ def _compose(*overrides):
 
 
 def test_table2_config_is_checked():
-    import train  # experiments/ is on pytest's pythonpath
+    import config_checks  # experiments/ is on pytest's pythonpath
 
-    train.check_config(_compose())
+    config_checks.check_config(_compose())
     for bad, match in [("solver.timesteps=0", "solver.timesteps=0 is invalid"),
                        ("baselines.run=[ME-greedy]", r"among \['M\(C\)E-greedy'\]"),
                        ("comm=distributed", "not supported for the drone arena"),
@@ -179,8 +179,8 @@ def test_table2_config_is_checked():
                        ("solver.final_restarts=0", "solver.final_restarts=0 is invalid"),
                        ("solver.final_score=best", "'penalised_return' or 'learned_success'"),
                        ("+solver.solver.ent_coeff=1", "did you mean 'ent_coef'")]:
-        with pytest.raises(train.ConfigError, match=match):
-            train.check_config(_compose(bad))
+        with pytest.raises(config_checks.ConfigError, match=match):
+            config_checks.check_config(_compose(bad))
 
 
 TINY = ["experiment=table2_quick", "env.arena.max_steps=20", "eval_episodes=2",

@@ -176,10 +176,10 @@ def test_metric_curves_refuses_bad_histories():
 
 # ---------------------------------------------------------------------- train.py
 def test_eval_every_is_checked():
-    import train as entry  # experiments/train.py (pytest pythonpath)
-    with pytest.raises(entry.ConfigError, match="eval_every=0 is invalid"):
-        entry.check_config(compose_train("eval_every=0"))
-    entry.check_config(compose_train("eval_every=1"))
+    import config_checks  # experiments/ is on pytest's pythonpath
+    with pytest.raises(config_checks.ConfigError, match="eval_every=0 is invalid"):
+        config_checks.check_config(compose_train("eval_every=0"))
+    config_checks.check_config(compose_train("eval_every=1"))
 
 
 def test_tiny_run_records_the_curves_and_writes_the_figures(tmp_path):

@@ -42,7 +42,9 @@ TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
         "n_demonstrations=10", "split=[4,6]", "logger=none"]
 
 
-import train as entry  # noqa: E402 - experiments/train.py (pytest pythonpath)
+import checkpoints  # noqa: E402 - experiments/ is on pytest's pythonpath
+import config_checks  # noqa: E402
+import train as entry  # noqa: E402
 
 
 def compose_train(*overrides: str):
@@ -87,7 +89,7 @@ def reference(tmp_path_factory) -> Path:
     ("logger", "none"), ("baselines", "greedy"), ("experiment", "table1"),
     ("experiment", "table1_small")])
 def test_every_shipped_config_passes_the_checks(group, option):
-    entry.check_config(compose_train(f"{group}={option}"))
+    config_checks.check_config(compose_train(f"{group}={option}"))
 
 
 @pytest.mark.parametrize("override,key,must", [
@@ -122,8 +124,8 @@ def test_every_shipped_config_passes_the_checks(group, option):
     ("baselines.max_constraints=-2", "baselines.max_constraints", "int >= 0"),
 ])
 def test_out_of_range_values_are_refused_naming_key_and_fix(override, key, must):
-    with pytest.raises(entry.ConfigError) as info:
-        entry.check_config(compose_train(override))
+    with pytest.raises(config_checks.ConfigError) as info:
+        config_checks.check_config(compose_train(override))
     msg = str(info.value)
     value = override.split("=", 1)[1]
     assert f"{key}=" in msg and must in msg and f"set e.g. {key}=" in msg, msg
@@ -138,13 +140,13 @@ def test_out_of_range_values_are_refused_naming_key_and_fix(override, key, must)
     ("split=[10,20]", "sums to 30, not n_demonstrations=100"),
 ])
 def test_bad_splits_are_refused(split, match):
-    with pytest.raises(entry.ConfigError, match=match):
-        entry.check_config(compose_train(split))
+    with pytest.raises(config_checks.ConfigError, match=match):
+        config_checks.check_config(compose_train(split))
 
 
 def test_every_problem_is_reported_at_once():
-    with pytest.raises(entry.ConfigError) as info:
-        entry.check_config(compose_train("algo.threshold=2", "env.model.gamma=-1",
+    with pytest.raises(config_checks.ConfigError) as info:
+        config_checks.check_config(compose_train("algo.threshold=2", "env.model.gamma=-1",
                                          "split=[0,100]"))
     assert "3 problem(s)" in str(info.value)
 
@@ -156,8 +158,8 @@ def test_unknown_keys_are_refused_with_a_suggestion():
     assert "Could not override 'algo.thresold'" in str(info.value)
     assert "+algo.thresold=0.3" in str(info.value)  # Hydra names the append syntax
     # ... but "+key=value" appends one that nothing would read: refused here.
-    with pytest.raises(entry.ConfigError) as info:
-        entry.check_config(compose_train("+algo.thresold=0.3", "+solver.dtyp=float64",
+    with pytest.raises(config_checks.ConfigError) as info:
+        config_checks.check_config(compose_train("+algo.thresold=0.3", "+solver.dtyp=float64",
                                          "+seeed=1"))
     msg = str(info.value)
     assert "unknown key 'algo.thresold'" in msg and "did you mean 'threshold'?" in msg
@@ -188,17 +190,17 @@ def test_a_checkpoint_from_another_configuration_is_refused(tmp_path, tiny):
     t = tiny_dicrl.make_trainer(tiny)
     t.train(1)
     path = tmp_path / "checkpoint.pt"
-    config = entry.training_config(compose_train(*TINY))
-    entry.Checkpoints(path, False, config=config).save("D-ICRL", t)
+    config = checkpoints.training_config(compose_train(*TINY))
+    checkpoints.Checkpoints(path, False, config=config).save("D-ICRL", t)
     assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]  # no .tmp left
     # the same configuration resumes, also with a longer training or another threshold
     for same in ([], ["algo.outer_iterations=30", "algo.threshold=0.4", "eval_episodes=5"]):
-        ck = entry.Checkpoints(path, True, config=entry.training_config(
+        ck = checkpoints.Checkpoints(path, True, config=checkpoints.training_config(
             compose_train(*TINY, *same)))
         assert ck.states("D-ICRL")[0]["outer_iteration"] == 1
-    other = entry.training_config(compose_train(*TINY, "seed=1", "algo.steps.alpha_bar=0.05"))
+    other = checkpoints.training_config(compose_train(*TINY, "seed=1", "algo.steps.alpha_bar=0.05"))
     with pytest.raises(ValueError) as info:
-        entry.Checkpoints(path, True, config=other)
+        checkpoints.Checkpoints(path, True, config=other)
     msg = str(info.value)
     assert "different configuration" in msg and "seed: 0 in the checkpoint, 1 now" in msg
     assert "algo.steps.alpha_bar: 0.12 in the checkpoint, 0.05 now" in msg  # quick's 0.12
@@ -215,7 +217,7 @@ def test_an_unreadable_checkpoint_is_refused(tmp_path, content):
     path = tmp_path / "checkpoint.pt"
     path.write_bytes(content)
     with pytest.raises(ValueError, match=r"cannot be read as a checkpoint.*Delete it"):
-        entry.Checkpoints(path, True)
+        checkpoints.Checkpoints(path, True)
 
 
 def test_a_checkpoint_with_pickled_objects_is_refused(tmp_path):
@@ -223,24 +225,24 @@ def test_a_checkpoint_with_pickled_objects_is_refused(tmp_path):
     # an arbitrary object: only unpickling (running its reduce code) could restore it
     torch.save({"D-ICRL": {"outer_iteration": 1, "payload": fractions.Fraction(1, 3)}}, path)
     with pytest.raises(ValueError, match="cannot be read as a checkpoint"):
-        entry.Checkpoints(path, True)
+        checkpoints.Checkpoints(path, True)
     torch.save([1, 2, 3], path)
     with pytest.raises(ValueError, match="not a checkpoint of this program"):
-        entry.Checkpoints(path, True)
+        checkpoints.Checkpoints(path, True)
 
 
 # ---------------------------------------------------------------------- crashes
 def test_a_second_signal_stops_at_once():
-    stop = entry.StopOnSignal()
-    with pytest.raises(entry.Interrupted):  # outside training: at once
+    stop = checkpoints.StopOnSignal()
+    with pytest.raises(checkpoints.Interrupted):  # outside training: at once
         stop._handle(signal.SIGINT, None)
     stop.training = True
     stop._handle(signal.SIGTERM, None)  # first: finish the outer iteration
     assert stop.signum == signal.SIGTERM
-    with pytest.raises(entry.Interrupted) as info:
+    with pytest.raises(checkpoints.Interrupted) as info:
         stop._handle(signal.SIGTERM, None)
     assert info.value.signum == signal.SIGTERM and info.value.saved is None
-    with entry.StopOnSignal() as s:  # installs its handlers and restores the previous
+    with checkpoints.StopOnSignal() as s:  # installs its handlers and restores the previous
         assert signal.getsignal(signal.SIGTERM) == s._handle
     assert signal.getsignal(signal.SIGTERM) != s._handle
 
@@ -516,7 +518,7 @@ def files_override(files):
 def test_shard_files_that_do_not_fit_the_run_are_refused_before_any_solve(recorded, extra,
                                                                            match):
     cfg = compose_train(*ONE_EXPERT, files_override(recorded), *extra)
-    entry.check_config(cfg)  # the paths are fine; their contents are not
+    config_checks.check_config(cfg)  # the paths are fine; their contents are not
     with pytest.raises(ValueError, match=match):
         entry.build_problem(cfg)
 
@@ -541,13 +543,14 @@ def test_shard_files_from_another_start_are_refused(recorded, tmp_path):
     (lambda r: [r[0], "nowhere.npz"], "no such file nowhere.npz"),
 ])
 def test_shard_file_lists_are_checked_with_the_config(recorded, files, match):
-    with pytest.raises(entry.ConfigError, match=match):
-        entry.check_config(compose_train(*ONE_EXPERT, files_override(files(recorded))))
+    with pytest.raises(config_checks.ConfigError, match=match):
+        config_checks.check_config(compose_train(*ONE_EXPERT, files_override(files(recorded))))
 
 
 def test_shard_files_are_refused_for_the_arena(recorded):
-    with pytest.raises(entry.ConfigError, match="shard_files is for the grid world"):
-        entry.check_config(compose_train("experiment=table2_quick", files_override(recorded)))
+    with pytest.raises(config_checks.ConfigError, match="shard_files is for the grid world"):
+        config_checks.check_config(
+            compose_train("experiment=table2_quick", files_override(recorded)))
 
 
 def test_the_command_line_refuses_a_shard_file_misfit_at_start_up(recorded, tmp_path):
@@ -571,7 +574,7 @@ def test_each_process_reads_only_the_shard_files_it_needs(recorded, monkeypatch,
         monkeypatch.setenv("RANK", rank)
         monkeypatch.setenv("WORLD_SIZE", "2")
     cfg = compose_train(*ONE_EXPERT, *comm, *extra, files_override(recorded))
-    assert entry.shard_files_read_by(cfg, entry.torchrun_rank(cfg)) == reads
+    assert config_checks.shard_files_read_by(cfg, config_checks.torchrun_rank(cfg)) == reads
 
 
 def test_a_learner_process_needs_only_its_own_shard_file(recorded, monkeypatch):
@@ -581,16 +584,17 @@ def test_a_learner_process_needs_only_its_own_shard_file(recorded, monkeypatch):
     monkeypatch.setenv("WORLD_SIZE", "2")
     monkeypatch.setenv("RANK", "1")
     cfg = compose_train(*ONE_EXPERT, "comm=distributed", files_override(files))
-    entry.check_config(cfg)
+    config_checks.check_config(cfg)
     entry.check_shard_contents(cfg)
     p = entry.build_problem(cfg, rank=1)
     assert p.shards[0] is None and p.demos is None
     assert p.experts is None and p.nominal is None  # only rank 0 writes the expert rows
     assert p.shards[1].n_trajectories == 4
     monkeypatch.setenv("RANK", "0")
-    with pytest.raises(entry.ConfigError, match=r"learner process 0: shard_files: no such file "
-                       r"elsewhere/learner0\.npz.*algo\.run_c_icrl=false baselines=none"):
-        entry.check_config(cfg)
+    with pytest.raises(config_checks.ConfigError,
+                       match=r"learner process 0: shard_files: no such file "
+                             r"elsewhere/learner0\.npz.*algo\.run_c_icrl=false baselines=none"):
+        config_checks.check_config(cfg)
 
 
 def test_a_checkpoint_of_other_shard_files_is_refused(recorded, tmp_path):
@@ -599,19 +603,19 @@ def test_a_checkpoint_of_other_shard_files_is_refused(recorded, tmp_path):
     shard_files keep their configuration as before (older checkpoints stay valid)."""
     import shutil
 
-    sampled = entry.training_config(compose_train(*ONE_EXPERT))
+    sampled = checkpoints.training_config(compose_train(*ONE_EXPERT))
     assert not any(k.startswith("shard_files") for k in sampled)
-    own = entry.training_config(compose_train(*ONE_EXPERT, files_override(recorded)))
+    own = checkpoints.training_config(compose_train(*ONE_EXPERT, files_override(recorded)))
     copy = str(shutil.copy(recorded[1], tmp_path / "copy.npz"))
-    same = entry.training_config(compose_train(*ONE_EXPERT,
+    same = checkpoints.training_config(compose_train(*ONE_EXPERT,
                                                files_override([recorded[0], copy])))
-    swapped = entry.training_config(compose_train(*ONE_EXPERT, "split=[4,3]",
+    swapped = checkpoints.training_config(compose_train(*ONE_EXPERT, "split=[4,3]",
                                                   files_override(recorded[::-1])))
     assert own["shard_files.sha256"] == same["shard_files.sha256"]
     assert own["shard_files.sha256"] != swapped["shard_files.sha256"]
     path = tmp_path / "checkpoint.pt"
-    entry.Checkpoints(path, False, config=own).save("D-ICRL", tiny_dicrl.make_trainer(
+    checkpoints.Checkpoints(path, False, config=own).save("D-ICRL", tiny_dicrl.make_trainer(
         tiny_dicrl.build_tiny()))
-    entry.Checkpoints(path, True, config=same)
+    checkpoints.Checkpoints(path, True, config=same)
     with pytest.raises(ValueError, match="shard_files.sha256"):
-        entry.Checkpoints(path, True, config=swapped)
+        checkpoints.Checkpoints(path, True, config=swapped)

@@ -1,0 +1,306 @@
+"""The entry points' config checks: every key known, every value in range, before any
+computation (a bad value would otherwise surface minutes later, deep in the solver).
+
+``check_config`` collects every problem and raises one :class:`ConfigError` naming, for
+each, the key, the value and the fix. ``train.py`` exits with code 2 on it.
+"""
+
+from __future__ import annotations
+
+import difflib
+import inspect
+import math
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from hydra.utils import get_class, get_object
+from omegaconf import DictConfig, OmegaConf
+
+from dicrl_torch.comm.distributed import DistributedCommunicator
+
+
+class ConfigError(ValueError):
+    """The configuration has an unknown key or a value out of range."""
+
+
+def _ge(lo):
+    return lambda x: x >= lo
+
+
+def _in_open(lo, hi):
+    return lambda x: lo < x < hi
+
+
+# key, type, condition, what it must be (and why), an example value. Checked before any
+# computation: a bad value would otherwise surface minutes later, deep in the solver.
+VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
+    ("seed", int, _ge(0), "an int >= 0 (it seeds the demonstrations and evaluation)", "0"),
+    ("n_demonstrations", int, _ge(1), "an int >= 1", "100"),
+    ("eval_episodes", int, _ge(1), "an int >= 1 (evaluation episodes per table row)", "200"),
+    ("eval_every", int, _ge(1),
+     "an int >= 1 (outer iterations between the CR/CVR evaluations of the curves)", "5"),
+    ("expert_temperature", float, _ge(0.0), "a number >= 0 (0: optimal experts)", "0.0"),
+    ("checkpoint_every", int, _ge(1), "an int >= 1 (outer iterations between checkpoints)",
+     "1"),
+    ("resume", bool, None, "true or false", "true"),
+    ("env.layout.n_experts", int, lambda x: x in (1, 2, 3),
+     "1, 2 or 3 (the experts of the layout's table, taken in order)", "2"),
+    ("env.model.horizon", int, _ge(1), "an int >= 1 (the horizon T, decisions per episode)",
+     "40"),
+    # γ = 1 is well defined over a finite horizon, and TabularGridModel accepts it.
+    ("env.model.gamma", float, lambda x: 0 < x <= 1, "a number in (0, 1] (the discount γ)",
+     "0.99"),
+    ("env.model.p_success", float, lambda x: 0 < x <= 1,
+     "a number in (0, 1] (the probability that a move succeeds)", "0.8"),
+    ("algo.outer_iterations", int, _ge(1), "an int >= 1", "20"),
+    ("algo.inner_steps", int, _ge(2), "an int >= 2 (K: Algorithm 2 takes K - 1 steps)", "6"),
+    ("algo.inner_step", float, _in_open(0.0, math.inf),
+     "a positive number (the constant step of inner_method=gradient_tracking)", "0.005"),
+    ("algo.steps.alpha_bar", float, _in_open(0.0, math.inf),
+     "a positive number (α(k) = ᾱ/(k+1))", "0.02"),
+    ("algo.steps.multiplier_scale", float, _in_open(0.0, math.inf),
+     "a positive number (the λ coordinate's step is scaled by it; 1: the paper's)", "1.0"),
+    ("algo.steps.beta_bar", float, _in_open(0.0, 1.0),
+     "a number in (0, 1) so that β(n) ∈ (0, 1) (Theorem 1)", "0.5"),
+    ("algo.steps.beta_power", float, lambda x: 0.5 < x <= 1,
+     "a number in (1/2, 1] so that Σβ = ∞ and Σβ² < ∞ (Theorem 1)", "0.6"),
+    ("algo.lsca_curvature", float, _in_open(0.0, math.inf),
+     "a positive number (ρ of the LSCA step)", "300.0"),
+    ("algo.prune_accrued", bool, None, "true or false", "true"),
+    ("algo.init_cost_weights", float, lambda x: 0 <= x <= 1,
+     "a number in [0, 1] (ω_c(0) lives in [0, 1]^d)", "0.0"),
+    ("algo.init_reward_weights", float, None, "a finite number", "0.0"),
+    ("algo.init_multiplier", float, None, "a finite number (λ(0))", "-1.0"),
+    ("algo.threshold", float, _in_open(0.0, 1.0),
+     "a number in (0, 1) (ω_c,j >= threshold marks a learned constraint)", "0.5"),
+    ("algo.prune_min_gain", float | None, _ge(0.0),
+     "null (keep every constraint) or a number >= 0 (nats per trajectory)", "0.001"),
+    ("algo.run_c_icrl", bool, None, "true or false", "true"),
+    ("algo.inner_method", str, lambda x: x in ("paper", "gradient_tracking"),
+     "'paper' or 'gradient_tracking'", "paper"),
+    ("comm.timeout_s", float, _in_open(0.0, math.inf),
+     "a positive number of seconds", "60"),
+    ("baselines.epsilon", float | None, _ge(0.0),
+     "null (BIC: ln(m)/(2m)) or a number >= 0 (nats per trajectory)", "0.023"),
+    ("baselines.max_constraints", int | None, _ge(0),
+     "null (no limit) or an int >= 0", "20"),
+]
+
+# Rules of the drone arena only (env=drones), and the grid world's keys it has not.
+DRONE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
+    ("solver.timesteps", int, _ge(1), "an int >= 1 (SAC env steps per solve)", "2000"),
+    ("solver.eval_action", str, lambda x: x in ("mean", "sampled"),
+     "'mean' or 'sampled' (the actions of the table's SR and CVR rollouts)", "mean"),
+    ("solver.final_timesteps", int, _ge(1),
+     "an int >= 1 (SAC steps of the last solve, on the learned (η̄, ω_c))", "2000"),
+    ("solver.final_checks", int, _ge(1),
+     "an int >= 1 (scored chunks of the last solve; 1: no selection)", "1"),
+    ("solver.final_restarts", int, _ge(1),
+     "an int >= 1 (independent continuations of the last solve; 1: the solver's own)", "1"),
+    ("solver.final_score", str, lambda x: x in ("penalised_return", "learned_success"),
+     "'penalised_return' or 'learned_success' (how the last solve's chunks are ranked)",
+     "learned_success"),
+    ("solver.warmup_timesteps", int, _ge(0), "an int >= 0 (SAC pre-training steps)",
+     "30000"),
+    ("solver.n_eval_episodes", int, _ge(1), "an int >= 1 (rollouts per estimate)", "10"),
+    ("env.arena.max_steps", int, _ge(1), "an int >= 1 (episode limit in steps)", "300"),
+    ("baselines.penalty", float, _in_open(0.0, math.inf),
+     "a positive number (reward units per step in a constrained cell)", "10.0"),
+    ("baselines.timesteps", int, _ge(1), "an int >= 1 (SAC steps per greedy trial)", "3000"),
+]
+GRID_ONLY = ("env.model.", "env.layout.")
+
+# The baselines' table rows (names as in the paper) and the greedy's demonstrator model.
+BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
+DRONE_BASELINES = ("M(C)E-greedy",)  # the arena is (nearly) deterministic: ME = MCE
+
+# Keys of nodes without a _target_ (those with one are checked against its signature).
+KNOWN_KEYS = {
+    "": {"env", "features", "solver", "algo", "graph", "comm", "logger", "name", "seed",
+         "n_demonstrations", "split", "eval_episodes", "eval_every", "expert_temperature",
+         "checkpoint_every", "resume", "baselines", "shard_files"},
+    "env": {"layout", "model", "true_reward_weights", "arena"},
+    # the drones' solver node (the grid's has a _target_, checked against its signature)
+    "solver": {"timesteps", "warmup_timesteps", "final_timesteps", "final_checks",
+               "final_restarts", "final_score", "n_eval_episodes", "eval_action", "solver"},
+    "features": {"reward", "cost"},
+    "graph": {"inner", "outer"},
+    "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",
+             "lsca_curvature", "prune_accrued", "init_cost_weights", "init_reward_weights",
+             "init_multiplier", "threshold", "prune_min_gain", "run_c_icrl"},
+    "baselines": {"run", "epsilon", "max_constraints", "penalty", "timesteps"},
+}
+_HYDRA_KEYS = {"_target_", "_partial_", "_args_", "_recursive_", "_convert_"}
+
+
+def _type_ok(value, kind) -> bool:
+    if value is None:
+        return kind == float | None or kind == int | None
+    kind = {float | None: float, int | None: int}.get(kind, kind)
+    if kind is bool or kind is str:
+        return isinstance(value, kind)
+    if isinstance(value, bool):  # bool is an int to Python, never a number here
+        return False
+    if kind is int:
+        return isinstance(value, int)
+    return isinstance(value, int | float) and math.isfinite(value)
+
+
+def _unknown_keys(node, path: str, problems: list[str]) -> None:
+    """Keys of ``node`` (and below) that nothing reads: a misspelt or stray override would
+    otherwise be ignored (``+key=...`` gets past Hydra's struct mode)."""
+    if not isinstance(node, DictConfig):
+        return
+    keys = set(node.keys())
+    known, reader = KNOWN_KEYS.get(path), f"'{path}'" if path else "the top level"
+    if "_target_" in node:
+        target = node["_target_"]
+        try:
+            params = inspect.signature(get_object(target)).parameters
+        except Exception as e:  # noqa: BLE001 - any import failure is a config error
+            problems.append(f"{path}._target_={target!r} cannot be imported ({e}); fix the "
+                            f"class path.")
+            return
+        if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            known = None
+        else:
+            known, reader = set(params) | _HYDRA_KEYS, target
+    if known is not None:
+        for key in sorted(keys - known):
+            full = f"{path}.{key}" if path else key
+            close = difflib.get_close_matches(key, sorted(known - _HYDRA_KEYS), n=1)
+            hint = f"did you mean '{close[0]}'? Remove" if close else "remove"
+            problems.append(f"unknown key '{full}': {reader} takes no option '{key}'; "
+                            f"{hint} it or fix its spelling.")
+    for key in keys:
+        _unknown_keys(node[key], f"{path}.{key}" if path else key, problems)
+
+
+def _check_shard_files(cfg, drones: bool, problems: list[str]) -> None:
+    """``shard_files``: null, or one existing ``.npz`` per learner, each listed once. Their
+    contents are checked when loaded (:func:`load_shard_files`), still before any solve."""
+    files = cfg.get("shard_files")
+    if files is None:
+        return
+    if drones:
+        problems.append("shard_files is for the grid world; the arena's demonstrations come "
+                        "from its planner. Set shard_files=null.")
+        return
+    if not (OmegaConf.is_list(files) and len(files) >= 1
+            and all(isinstance(f, str) and f for f in files)):
+        problems.append(f"shard_files={_plain(files)} is invalid: it must be null or a list of "
+                        f".npz paths, one per learner; set e.g. shard_files=[a.npz,b.npz].")
+        return
+    split = cfg.get("split")
+    if OmegaConf.is_list(split) and len(files) != len(split):
+        problems.append(f"shard_files lists {len(files)} files but split={_plain(split)} has "
+                        f"{len(split)} learners; give one file per learner, in learner order.")
+    if len(set(files)) != len(files):
+        problems.append(f"shard_files={_plain(files)} lists a file twice; each learner holds "
+                        f"its own share of the demonstrations.")
+    rank = torchrun_rank(cfg)
+    reads = shard_files_read_by(cfg, rank)
+    missing = [files[v] for v in reads if not Path(files[v]).is_file()]
+    if missing:
+        who = "" if rank is None else f"learner process {rank}: "
+        pooled = "" if rank != 0 or len(reads) == 1 else (
+            " Rank 0 reads every file because it pools them for C-ICRL and the baselines; "
+            "make them reachable from its machine, or set algo.run_c_icrl=false "
+            "baselines=none.")
+        problems.append(f"{who}shard_files: no such file {', '.join(missing)} (relative paths "
+                        f"are taken from the directory the run is started in, "
+                        f"{Path.cwd()}).{pooled}")
+
+
+def torchrun_rank(cfg) -> int | None:
+    """This process's learner id when torchrun started it for ``comm=distributed``."""
+    if is_drone_run(cfg) or "RANK" not in os.environ:
+        return None
+    try:
+        simulated = is_simulated(cfg)
+    except Exception:  # noqa: BLE001 - a bad comm target is reported by the key checks
+        return None
+    return None if simulated else int(os.environ["RANK"])
+
+
+def shard_files_read_by(cfg, rank: int | None) -> list[int]:
+    """Which of ``shard_files`` a process reads. A learner process (``rank``) reads only its
+    own, so on several machines a file need only lie on its learner's machine. The process
+    that finishes the run (``rank`` None, or torchrun's rank 0) reads every file when it
+    pools them for C-ICRL or the baselines."""
+    n = len(cfg.shard_files)
+    pools = bool(cfg.algo.run_c_icrl) or bool(
+        OmegaConf.select(cfg, "baselines.run", default=None))
+    if rank is None or (rank == 0 and pools):
+        return list(range(n))
+    return [rank] if rank < n else []
+
+
+def is_drone_run(cfg) -> bool:
+    """The drone arena (``env=drones``) rather than the grid world."""
+    return OmegaConf.select(cfg, "env.arena", default=None) is not None
+
+
+def is_simulated(cfg) -> bool:
+    return not issubclass(get_class(cfg.comm._target_), DistributedCommunicator)
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Refuse unknown keys and out-of-range values before anything is computed.
+
+    Raises:
+        ConfigError: listing every problem, each naming the key, the value and the fix.
+    """
+    problems: list[str] = []
+    _unknown_keys(cfg, "", problems)
+    drones = is_drone_run(cfg)
+    rules = VALUE_RULES + DRONE_RULES if drones else VALUE_RULES
+    for key, kind, ok, must, example in rules:
+        if drones and key.startswith(GRID_ONLY):
+            continue
+        if OmegaConf.select(cfg, key, default="__missing__") == "__missing__":
+            if key != "comm.timeout_s":  # only the distributed backend has a timeout
+                problems.append(f"'{key}' is missing; set it, e.g. {key}={example}.")
+            continue
+        value = OmegaConf.select(cfg, key)
+        if not _type_ok(value, kind) or (ok is not None and value is not None and not ok(value)):
+            problems.append(f"{key}={value!r} is invalid: it must be {must}; set e.g. "
+                            f"{key}={example}.")
+    split = cfg.get("split")
+    if not (OmegaConf.is_list(split) and len(split) >= 1
+            and all(_type_ok(x, int) and x >= 1 for x in split)):
+        problems.append(f"split={_plain(split)} is invalid: it must be a non-empty list of "
+                        f"ints >= 1, one per learner (a learner without trajectories has "
+                        f"nothing to learn from); set e.g. split=[10,20,30,40].")
+    elif _type_ok(cfg.get("n_demonstrations"), int) and sum(split) != cfg.n_demonstrations:
+        problems.append(f"split={_plain(split)} sums to {sum(split)}, not n_demonstrations="
+                        f"{cfg.n_demonstrations}; make them agree (e.g. n_demonstrations="
+                        f"{sum(split)}).")
+    _check_shard_files(cfg, drones, problems)
+    run = OmegaConf.select(cfg, "baselines.run", default=None)
+    names, example = (list(DRONE_BASELINES), "baselines=greedy_drones") if drones else \
+        (list(BASELINES), "baselines=greedy")
+    if not (OmegaConf.is_list(run) and all(isinstance(x, str) and x in names for x in run)
+            and len(set(run)) == len(run)):
+        problems.append(f"baselines.run={_plain(run)} is invalid: it must be a list of "
+                        f"distinct names among {names} (the rows to add; [] for "
+                        f"none); set e.g. {example} or baselines=none.")
+    checks = OmegaConf.select(cfg, "solver.final_checks", default=None)
+    final = OmegaConf.select(cfg, "solver.final_timesteps", default=None)
+    if drones and _type_ok(checks, int) and _type_ok(final, int) and 1 <= final < checks:
+        problems.append(f"solver.final_checks={checks} exceeds solver.final_timesteps={final}: "
+                        f"each scored chunk needs at least one step; lower final_checks.")
+    if drones and not is_simulated(cfg):
+        problems.append("comm=distributed is not supported for the drone arena yet (its SAC "
+                        "solvers are not checkpointed across processes); use comm=simulated.")
+    if problems:
+        raise ConfigError(f"{len(problems)} problem(s) in the configuration, nothing was "
+                          f"computed:\n" + "\n".join(f"  - {p}" for p in problems))
+
+
+def _plain(value):
+    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+
+
