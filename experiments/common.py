@@ -85,13 +85,6 @@ def make_logger(cfg, out: Path):
                                       cfg.logger._target_ else {}))
 
 
-# The paper's Table 1 (grid world) and Table 2 (drones) metric columns.
-TABLE1_COLUMNS = ("CR", "FPR", "FNR", "CVR", "RFD")
-TABLE2_COLUMNS = ("FPR", "FNR", "CVR", "SR")
-_FORMATS = {"FPR": (7, ".2f"), "FNR": (7, ".2f"), "CVR": (8, ".3f"), "RFD": (8, ".3f"),
-            "SR": (7, ".2f")}
-
-
 def log_disagreement(logger, trainer, n: int) -> None:
     """The network run's ``consensus/`` distances after outer iteration ``n``: of ω_c
     and of η̄. Gathers from every learner, so every learner process must call it;
@@ -103,6 +96,13 @@ def log_disagreement(logger, trainer, n: int) -> None:
     if logger is not None:
         for tag, gap in gaps.items():
             logger.scalar("network", tag, gap, n)
+
+
+# The paper's Table 1 (grid world) and Table 2 (drones) metric columns.
+TABLE1_COLUMNS = ("CR", "FPR", "FNR", "CVR", "RFD")
+TABLE2_COLUMNS = ("FPR", "FNR", "CVR", "SR")
+_FORMATS = {"FPR": (7, ".2f"), "FNR": (7, ".2f"), "CVR": (8, ".3f"), "RFD": (8, ".3f"),
+            "SR": (7, ".2f")}
 
 
 def print_table(methods: dict, columns: Sequence[str] = TABLE1_COLUMNS) -> None:
