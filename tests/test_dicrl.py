@@ -46,11 +46,10 @@ def test_same_seed_same_numbers_and_consensus(setup):
     assert [h["inner_processes"] for h in a.history] == [3, 3, 3]
 
 
-
 def test_disagreement_of_eta_is_the_pairwise_distance_that_the_inner_graph_leaves(setup):
     """ω_c: the complete outer graph averages exactly; η̄: only the inner graph mixes it,
     so a directed cycle (slow mixing, K = 3 steps) leaves the learners apart, and a
-    complete inner graph much less so."""
+    complete inner graph less so."""
     n = len(SPLIT)
     gaps = {}
     for name, inner in (("cycle", DirectedCycleSchedule(n_learners=n)),
@@ -66,6 +65,7 @@ def test_disagreement_of_eta_is_the_pairwise_distance_that_the_inner_graph_leave
     assert gaps["cycle"] > 0 and gaps["complete"] < gaps["cycle"]
     with pytest.raises(ValueError, match="field must be one of"):
         t.disagreement("eta_bar")
+
 
 def test_merging_identical_inner_processes_changes_nothing(setup):
     # a common start: one inner process serves all learners, bit for bit
