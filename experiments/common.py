@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 
 def build(cfg, **objects):
@@ -78,6 +80,38 @@ def trainer_settings(cfg, n_learners: int) -> dict[str, Any]:
 def write_json(path: Path, obj) -> None:
     text = json.dumps(obj, indent=1)  # before opening anything: a failure writes nothing
     atomic_write(path, lambda tmp: tmp.write_text(text))
+
+
+def results_record(cfg, *, t_start: float, methods: dict, disagreement: float,
+                   histories: dict[str, list[dict]]) -> dict:
+    """``results.json`` (DESIGN §8) of a finished run.
+
+    Two entries are timings, the only ones in which two runs of the same seed differ:
+    ``wall_s``, this process's time since ``t_start``, and ``training_s``, each trained
+    method's outer iterations summed over every process that ran them. A run resumed
+    across sessions thus still reports what its training took (its ``wall_s`` counts only
+    the last segment). For the same reason the history's per-iteration ``seconds`` are
+    left out.
+    """
+    return {
+        "experiment": cfg.name, "wall_s": time.perf_counter() - t_start,
+        "training_s": {k: sum(h["seconds"] for h in hist) for k, hist in histories.items()
+                       if hist and all(h.get("seconds") is not None for h in hist)},
+        "methods": {k: {"learners": v["learners"]} for k, v in methods.items()},
+        "consensus_max_pairwise_cost_distance": disagreement,
+        "history": {k: [{**h, "seconds": None} for h in hist] for k, hist in histories.items()},
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
+
+
+def print_timings(results: dict, resumed: bool) -> None:
+    """The run's wall time and final consensus; for a ``resumed`` run also the training
+    time of its methods, counting the segments before the resume."""
+    print(f"\nwall time {results['wall_s']:.0f} s; consensus max ‖ω_c − ω_c'‖ = "
+          f"{results['consensus_max_pairwise_cost_distance']:.1e}")
+    if resumed and results["training_s"]:
+        print("outer iterations, every segment of the resumed run counted: "
+              + ", ".join(f"{k} {s:.0f} s" for k, s in results["training_s"].items()))
 
 
 def make_logger(cfg, out: Path):

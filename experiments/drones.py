@@ -34,11 +34,12 @@ from common import (
     log_disagreement,
     make_logger,
     print_table,
+    print_timings,
+    results_record,
     trainer_settings,
     write_json,
 )
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
 
 from dicrl_torch.algos.dicrl import DICRL
 from dicrl_torch.algos.greedy import SACGreedyConstraintInference
@@ -279,16 +280,10 @@ def run_drones(cfg, out: Path, t_start: float) -> None:
         methods["M(C)E-greedy"] = {"D": "×", "NATR": "×", "learners": [row]}
     methods["Experts (ground truth)"] = {"learners": [expert_row(p)]}
     logger.close()
-    results = {
-        "experiment": cfg.name, "wall_s": time.perf_counter() - t_start,
-        "methods": {k: {"learners": v["learners"]} for k, v in methods.items()},
-        "consensus_max_pairwise_cost_distance": d.disagreement(),
-        "history": {k: [{**h, "seconds": None} for h in hist] for k, hist in histories.items()},
-        "config": OmegaConf.to_container(cfg, resolve=True),
-    }
+    results = results_record(cfg, t_start=t_start, methods=methods,
+                             disagreement=d.disagreement(), histories=histories)
     write_json(out / "results.json", results)
     print()
     print_table(methods, TABLE2_COLUMNS)
-    print(f"\nwall time {results['wall_s']:.0f} s; consensus max ‖ω_c − ω_c'‖ = "
-          f"{results['consensus_max_pairwise_cost_distance']:.1e}")
+    print_timings(results, resumed=False)  # drone runs do not resume
     print(f"results, TensorBoard runs (tb/) and figures in {out.resolve()}")

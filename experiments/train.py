@@ -63,6 +63,8 @@ from common import (
     log_disagreement,
     make_logger,
     print_table,
+    print_timings,
+    results_record,
     trainer_settings,
     write_json,
 )
@@ -484,22 +486,15 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
         row.update(FPR=None, FNR=None, RFD=0.0, SR=None)
         methods[name] = {"learners": [row]}
 
-    results = {
-        "experiment": cfg.name, "wall_s": time.perf_counter() - t_start,
-        "methods": {k: {"learners": v["learners"]} for k, v in methods.items()},
-        "consensus_max_pairwise_cost_distance": d_icrl["disagreement"],
-        "history": {k: [{**h, "seconds": None} for h in hist]  # timings vary run to run
-                    for k, hist in histories.items()},
-        "config": OmegaConf.to_container(cfg, resolve=True),
-    }
+    results = results_record(cfg, t_start=t_start, methods=methods,
+                             disagreement=d_icrl["disagreement"], histories=histories)
     write_json(out / "results.json", results)
     # After results.json: a figure that fails to draw loses no result.
     figures = write_figures(cfg, out, p, methods, results["history"], logger)
     logger.close()
     print()
     print_table(methods)
-    print(f"\nwall time {results['wall_s']:.0f} s; consensus max ‖ω_c − ω_c'‖ = "
-          f"{results['consensus_max_pairwise_cost_distance']:.1e}")
+    print_timings(results, resumed=cfg.resume)
     print(f"results, TensorBoard runs (tb/) and figures in {out.resolve()}")
     print("figures:\n" + "\n".join(f"  {path.resolve()}" for path in figures))
 
@@ -637,7 +632,7 @@ def run_learner(comm: DistributedCommunicator, cfg, out: Path, p: Problem,
     logger.close()
     write_json(out / "learner_rows" / f"rank{rank}.json", {
         "run_id": run_id, "rank": rank, "world_size": comm.n_learners, "row": rows[0],
-        "history": [{**h, "seconds": None} for h in trainer.history], "disagreement": gap})
+        "history": trainer.history, "disagreement": gap})
     comm.barrier()
 
 

@@ -145,9 +145,18 @@ def run_train(run_dir, *extra, env=None):
 
 def comparable(path):
     res = json.loads((path / "results.json").read_text())
-    res.pop("wall_s")
+    for timing in ("wall_s", "training_s"):
+        res.pop(timing)
     res["config"].pop("resume")  # how the run was started, not what it computed
     return res
+
+
+def checkpointed_seconds(run_dir) -> list[float]:
+    """The D-ICRL outer iterations' seconds kept in the run's checkpoint."""
+    import torch
+
+    saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    return [h["seconds"] for h in saved["D-ICRL"]["history"]]
 
 
 def test_kill_9_then_resume_reproduces_the_uninterrupted_run(tmp_path):
@@ -156,10 +165,18 @@ def test_kill_9_then_resume_reproduces_the_uninterrupted_run(tmp_path):
     crashed = run_train(tmp_path / "crash", env={"DICRL_CRASH_AFTER": "D-ICRL:2"})
     assert crashed.returncode == -9  # killed mid-run, after outer iteration 2
     assert not (tmp_path / "crash" / "results.json").exists()
+    before_kill = checkpointed_seconds(tmp_path / "crash")
     resumed = run_train(tmp_path / "crash", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert "resuming from" in resumed.stdout
     assert comparable(tmp_path / "crash") == comparable(tmp_path / "full")
+    # The training time counts the iterations run before the kill, as that process timed
+    # them, besides the resumed process's own.
+    seconds = checkpointed_seconds(tmp_path / "crash")
+    assert len(before_kill) == 2 and seconds[:2] == before_kill and len(seconds) == 3
+    results = json.loads((tmp_path / "crash" / "results.json").read_text())
+    assert results["training_s"]["D-ICRL"] == pytest.approx(sum(seconds), rel=1e-12)
+    assert set(results["training_s"]) == {"D-ICRL", "C-ICRL"}
 
 
 def test_same_seed_same_results(tmp_path):

@@ -62,7 +62,8 @@ def run_train(run_dir: Path, *extra: str, env: dict | None = None,
 
 def comparable(run_dir: Path) -> dict:
     res = json.loads((run_dir / "results.json").read_text())
-    res.pop("wall_s")
+    for timing in ("wall_s", "training_s"):
+        res.pop(timing)
     res["config"].pop("resume")  # how the run was started, not what it computed
     return res
 
