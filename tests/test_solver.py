@@ -212,3 +212,28 @@ def test_bad_inputs_are_refused():
         FactoredSoftBellman(model=model, compile="yes")
     with pytest.raises(ValueError, match="dtype"):
         FactoredSoftBellman(model=model, dtype=torch.int32)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e5])
+def test_float32_scale_warning_reads_the_finite_values(scale):
+    """Forbidden states hold V = -inf; the float32 scale check looks past them and warns
+    with the largest finite |V|, exactly when that passes the limit."""
+    layout = GridLayout(size=3, starts=((0, 2), (2, 0)), goals=((2, 2), (0, 0)),
+                        obstacles=((1, 1),), forbidden_actions=("NE",))
+    model = TabularGridModel(layout=layout, horizon=4, gamma=0.9)
+    rb = GoalClosenessRewardBasis(model)
+    reward = (rb().weighted(rb.true_weights()).scale(scale)
+              + hard_constraint_reward(model, layout))
+    terminal = forbidden_state_value(model, layout)
+    solver = FactoredSoftBellman(model=model, dtype=torch.float32)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sol = solver.solve(reward, forward=False, terminal_value=terminal)
+    assert torch.isneginf(sol.V).any()
+    finite_max = float(sol.V[torch.isfinite(sol.V)].abs().max())
+    said = [str(w.message) for w in caught if "float32" in str(w.message)]
+    if scale == 1.0:
+        assert finite_max < 1e4 and not said
+    else:
+        assert finite_max > 1e4 and len(said) == 1
+        assert said[0].startswith(f"|V| reaches {finite_max:.3g}:")

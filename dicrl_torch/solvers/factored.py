@@ -591,8 +591,12 @@ class FactoredSoftBellman:
         sync()
         t1 = time.perf_counter()
         if self.dtype == torch.float32:
-            finite = V[torch.isfinite(V)]
-            v_max = float(finite.abs().max()) if finite.numel() else 0.0
+            # One pass without a copy (a masked select of V took 0.7 s per 3-expert
+            # solve); states with no allowed action hold -inf and are masked out only then.
+            lo, hi = torch.aminmax(V)
+            if lo == -math.inf:
+                lo, hi = torch.aminmax(V.masked_fill(V == -math.inf, 0.0))
+            v_max = max(abs(float(lo)), abs(float(hi)))
             # Again only when |V| has doubled since: a training run solves hundreds of
             # times at about the same scale, and one line says it.
             if v_max > max(FLOAT32_VALUE_LIMIT, 2.0 * self._warned_value):
