@@ -18,6 +18,10 @@ class NullLogger:
     def image(self, run: str, tag: str, image: np.ndarray, step: int) -> None:
         pass
 
+    def has_run(self, run: str) -> bool:
+        """Whether ``run`` already holds logged values (from this or an earlier process)."""
+        return False
+
     def close(self) -> None:
         pass
 
@@ -48,6 +52,9 @@ class TensorBoardLogger(NullLogger):
     def image(self, run: str, tag: str, image: np.ndarray, step: int) -> None:
         """``image`` ``[H, W, 3]`` uint8."""
         self._writer(run).add_image(tag, image, step, dataformats="HWC")
+
+    def has_run(self, run: str) -> bool:
+        return run in self._writers or any((self.root / run).glob("events.out.tfevents.*"))
 
     def close(self) -> None:
         for w in self._writers.values():

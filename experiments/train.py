@@ -405,17 +405,37 @@ def outer_metrics(trainer: DICRL, ctx, threshold: float, rollouts: bool) -> dict
     return metrics
 
 
-def log_outer(logger, run_of: RunOf, trainer: DICRL, info: dict, log_network: bool) -> None:
-    """TensorBoard values of the history entry ``info`` (with :func:`outer_metrics`)."""
+def log_history_entry(logger, run_of: RunOf, local: list[int], info: dict,
+                      learners: list[int] | None = None) -> None:
+    """The ``outer/`` and ``eval/`` values of the history entry ``info`` (with
+    :func:`outer_metrics`) for the local learners ``local`` (or those of them in
+    ``learners``)."""
     n = info["outer_iteration"]
-    for i, v in enumerate(trainer.local):
+    for i, v in enumerate(local):
+        if learners is not None and v not in learners:
+            continue
         for tag, key in (("outer/multiplier", "multiplier"), ("outer/lga_norm", "lga_norm"),
                          ("eval/FPR", "FPR"), ("eval/FNR", "FNR"), ("eval/RFD", "RFD"),
                          ("eval/CR", "CR"), ("eval/CVR", "CVR")):
             if key in info:  # CR and CVR: only where rollouts_due
                 logger.scalar(run_of(v), tag, info[key][i], n)
+
+
+def log_outer(logger, run_of: RunOf, trainer: DICRL, info: dict, log_network: bool) -> None:
+    """TensorBoard values of the history entry ``info`` just computed."""
+    log_history_entry(logger, run_of, trainer.local, info)
     if trainer.n_learners > 1:
-        log_disagreement(logger if log_network else None, trainer, n)
+        log_disagreement(logger if log_network else None, trainer, info["outer_iteration"])
+
+
+def replay_history(logger, run_of: RunOf, trainer: DICRL) -> None:
+    """Write a resumed trainer's checkpointed history into the learner runs that have no
+    values yet: a checkpoint carried to another directory, checkout or machine arrives
+    without its event files, and its curves would otherwise start where it resumed. The
+    inner/ values and the network's distances are not in the history."""
+    fresh = [v for v in trainer.local if not logger.has_run(run_of(v))]
+    for info in trainer.history if fresh else ():
+        log_history_entry(logger, run_of, trainer.local, info, learners=fresh)
 
 
 
@@ -427,6 +447,7 @@ def train(name: str, trainer: DICRL, ckpt: Checkpoints, logger, run_of: RunOf, c
         Interrupted: ``stop`` caught a signal; the last outer iteration is checkpointed.
     """
     a = cfg.algo
+    replay_history(logger, run_of, trainer)
     # The trainer logs its inner/ scalars itself (each learner's own inner process).
     trainer.logger, trainer.run_name = logger, run_of
 

@@ -4,6 +4,7 @@ goes nowhere); the demo entry point runs end to end."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -177,6 +178,40 @@ def test_kill_9_then_resume_reproduces_the_uninterrupted_run(tmp_path):
     results = json.loads((tmp_path / "crash" / "results.json").read_text())
     assert results["training_s"]["D-ICRL"] == pytest.approx(sum(seconds), rel=1e-12)
     assert set(results["training_s"]) == {"D-ICRL", "C-ICRL"}
+
+
+def test_resume_elsewhere_restores_the_tensorboard_curves(tmp_path):
+    """A checkpoint carried to a new run directory (another checkout or machine) arrives
+    without its event files. The resumed run writes the checkpointed iterations' outer/
+    and eval/ values, so its curves equal the uninterrupted run's."""
+    import os
+
+    import numpy as np
+    from tb_snapshot import read_scalars
+
+    def run_logged(run_dir, *extra, env=None):
+        return subprocess.run(
+            [sys.executable, str(ROOT / "experiments" / "train.py"),
+             f"hydra.run.dir={run_dir}", *[o for o in TINY if not o.startswith("logger=")],
+             *extra], capture_output=True, text=True, cwd=ROOT, timeout=600,
+            env={**os.environ, **(env or {})})
+
+    full = run_logged(tmp_path / "full")
+    assert full.returncode == 0, full.stderr[-2000:]
+    crashed = run_logged(tmp_path / "crash", env={"DICRL_CRASH_AFTER": "D-ICRL:2"})
+    assert crashed.returncode == -9
+    (tmp_path / "moved").mkdir()
+    shutil.copy(tmp_path / "crash" / "checkpoint.pt", tmp_path / "moved")
+    resumed = run_logged(tmp_path / "moved", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    want, got = read_scalars(tmp_path / "full"), read_scalars(tmp_path / "moved")
+    curves = [(tag, run) for tag in want if tag.startswith(("outer/", "eval/"))
+              for run in want[tag]]
+    assert ("eval/FNR", "learner1") in curves and ("outer/multiplier", "c_icrl") in curves
+    for tag, run in curves:
+        (want_steps, want_values), (got_steps, got_values) = want[tag][run], got[tag][run]
+        assert list(got_steps) == list(want_steps), (tag, run)
+        assert np.array_equal(got_values, want_values), (tag, run)
 
 
 def test_same_seed_same_results(tmp_path):
