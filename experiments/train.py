@@ -434,7 +434,9 @@ def replay_history(logger, run_of: RunOf, trainer: DICRL) -> None:
     without its event files, and its curves would otherwise start where it resumed. The
     inner/ values and the network's distances are not in the history."""
     fresh = [v for v in trainer.local if not logger.has_run(run_of(v))]
-    for info in trainer.history if fresh else ():
+    if not fresh:
+        return
+    for info in trainer.history:
         log_history_entry(logger, run_of, trainer.local, info, learners=fresh)
 
 
