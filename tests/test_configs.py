@@ -13,6 +13,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
+from tiny_train import TINY, comparable, run_train
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -128,28 +129,6 @@ def test_train_runs_end_to_end(tmp_path):
             assert {"learner0", "learner1"} <= runs_of[tag], tag
     for tag in ("consensus/max_pairwise_cost_distance", "consensus/max_pairwise_eta_distance"):
         assert runs_of[tag] == {"network"}, tag
-
-
-TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
-        "algo.outer_iterations=3", "algo.inner_steps=2", "eval_episodes=10",
-        "n_demonstrations=10", "split=[4,6]", "logger=none"]
-
-
-def run_train(run_dir, *extra, env=None):
-    import os
-
-    return subprocess.run(
-        [sys.executable, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={run_dir}",
-         *TINY, *extra], capture_output=True, text=True, cwd=ROOT, timeout=600,
-        env={**os.environ, **(env or {})})
-
-
-def comparable(path):
-    res = json.loads((path / "results.json").read_text())
-    for timing in ("wall_s", "training_s"):
-        res.pop(timing)
-    res["config"].pop("resume")  # how the run was started, not what it computed
-    return res
 
 
 def checkpointed_seconds(run_dir) -> list[float]:

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import fractions
-import json
-import os
 import shlex
 import signal
 import subprocess
@@ -26,6 +24,7 @@ import tiny_dicrl
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
+from tiny_train import TINY, comparable, run_train
 
 from dicrl_torch.algos.dicrl import NonFiniteError, StepSizes
 from dicrl_torch.algos.icrl import model_reward
@@ -36,10 +35,6 @@ from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
-# tests/test_configs.py's TINY: 1 expert, T = 8, 2 learners, 3 outer iterations
-TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
-        "algo.outer_iterations=3", "algo.inner_steps=2", "eval_episodes=10",
-        "n_demonstrations=10", "split=[4,6]", "logger=none"]
 
 
 import checkpoints  # noqa: E402 - experiments/ is on pytest's pythonpath
@@ -50,22 +45,6 @@ import train as entry  # noqa: E402
 def compose_train(*overrides: str):
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         return compose(config_name="train", overrides=list(overrides))
-
-
-def run_train(run_dir: Path, *extra: str, env: dict | None = None,
-              timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={run_dir}",
-         *TINY, *extra], capture_output=True, text=True, cwd=ROOT, timeout=timeout,
-        env={**os.environ, **(env or {})})
-
-
-def comparable(run_dir: Path) -> dict:
-    res = json.loads((run_dir / "results.json").read_text())
-    for timing in ("wall_s", "training_s"):
-        res.pop(timing)
-    res["config"].pop("resume")  # how the run was started, not what it computed
-    return res
 
 
 def leftovers(run_dir: Path) -> list[str]:
