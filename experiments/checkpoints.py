@@ -28,7 +28,7 @@ from dicrl_torch.algos.dicrl import DICRL
 CHECKPOINT_KEYS = ("seed", "n_demonstrations", "split", "expert_temperature", "env", "features",
                    "solver", "graph", "algo")
 CHECKPOINT_IGNORED = ("solver.progress", "algo.outer_iterations", "algo.threshold",
-                      "algo.prune_min_gain", "algo.run_c_icrl")
+                      "algo.prune_min_gain", "algo.run_c_icrl", "algo.run_d_icrl")
 
 
 def training_config(cfg) -> dict[str, Any]:
@@ -50,6 +50,13 @@ def training_config(cfg) -> dict[str, Any]:
                                       if Path(f).is_file() else None
                                       for f in container["shard_files"]]
     return flat
+
+
+def config_diff(a: dict, b: dict, a_is: str, b_is: str) -> str:
+    """The first keys in which two :func:`training_config` dicts differ, for a message."""
+    keys = sorted(k for k in set(a) | set(b) if a.get(k, "<unset>") != b.get(k, "<unset>"))
+    return "; ".join(f"{k}: {a.get(k, '<unset>')!r} {a_is}, {b.get(k, '<unset>')!r} {b_is}"
+                     for k in keys[:6]) + ("; ..." if len(keys) > 6 else "")
 
 
 class Checkpoints:
@@ -90,15 +97,11 @@ class Checkpoints:
     def _check_config(self, saved: dict | None) -> None:
         if self.config is None or saved is None or saved == self.config:
             return
-        keys = sorted(k for k in set(saved) | set(self.config)
-                      if saved.get(k, "<unset>") != self.config.get(k, "<unset>"))
-        diff = "; ".join(f"{k}: {saved.get(k, '<unset>')!r} in the checkpoint, "
-                         f"{self.config.get(k, '<unset>')!r} now" for k in keys[:6])
         raise ValueError(
-            f"{self.path} was written with a different configuration ({diff}"
-            f"{'; ...' if len(keys) > 6 else ''}). Resume with the overrides of the "
-            f"interrupted run, or start a new run without resume=true (in another "
-            f"hydra.run.dir).")
+            f"{self.path} was written with a different configuration "
+            f"({config_diff(saved, self.config, 'in the checkpoint', 'now')}). Resume with "
+            f"the overrides of the interrupted run, or start a new run without resume=true "
+            f"(in another hydra.run.dir).")
 
     @staticmethod
     def _load(path: Path) -> dict:
@@ -199,3 +202,71 @@ def interrupt_on_signals() -> None:
         signal.signal(sig, handle)
 
 
+
+
+def merge(source: Path, into: Path, names: list[str]) -> dict[str, int]:
+    """Copy the trainer states ``names`` (e.g. ``C-ICRL``) of ``source`` into ``into``.
+
+    A method trained in its own job (``algo.run_d_icrl=false``) thus joins the run it
+    belongs to, which then resumes past it. Both files must have been written under the
+    same training config, and ``into`` must not be written meanwhile (stop its run first).
+
+    Returns:
+        ``{name: outer iterations}`` of the states copied.
+
+    Raises:
+        ValueError: a file is no checkpoint, lacks a state, was written under another
+            config, or ``into`` already holds the state as far or further.
+    """
+    src, dst = Checkpoints._load(source), Checkpoints._load(into)
+    config = next((s.get("run_config") for s in dst.values()), None)
+    copied = {}
+    for name in names:
+        if name not in src:
+            raise ValueError(f"{source} holds no {name} state (it has {sorted(src)}); "
+                             f"train it there first.")
+        theirs = src[name].get("run_config")
+        if config is not None and theirs is not None and theirs != config:
+            raise ValueError(f"{source}'s {name} was trained under another configuration "
+                             f"than {into}'s run ({config_diff(theirs, config, 'there', 'here')}"
+                             f"); train it again with the run's overrides.")
+        n, have = src[name]["outer_iteration"], dst.get(name, {}).get("outer_iteration", 0)
+        if have >= n:
+            raise ValueError(f"{into} already holds {name} after outer iteration {have}, and "
+                             f"{source} only after {n}; nothing to merge.")
+        for key in (name, f"{name}:previous"):
+            if key in src:
+                dst[key] = src[key]
+        copied[name] = n
+    atomic_write(into, lambda tmp: torch.save(dst, tmp))
+    return copied
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        prog="python experiments/checkpoints.py",
+        description="Checkpoint tools of experiments/train.py.")
+    commands = parser.add_subparsers(dest="command", required=True)
+    m = commands.add_parser(
+        "merge", help="copy a method's state from one run's checkpoint into another's",
+        description="Copy trainer states (e.g. C-ICRL, trained in its own job with "
+                    "algo.run_d_icrl=false) from SOURCE into INTO, so that the run of INTO "
+                    "resumes past them. Stop the run that writes INTO first.")
+    m.add_argument("source", type=Path, help="checkpoint.pt holding the trained method")
+    m.add_argument("into", type=Path, help="checkpoint.pt of the run it joins")
+    m.add_argument("--method", action="append", required=True,
+                   help="state to copy (repeatable), e.g. C-ICRL")
+    args = parser.parse_args(argv)
+    try:
+        copied = merge(args.source, args.into, args.method)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    print(f"{args.into}: " + ", ".join(f"{k} now after outer iteration {n}"
+                                       for k, n in copied.items()))
+
+
+if __name__ == "__main__":
+    main()

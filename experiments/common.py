@@ -82,7 +82,7 @@ def write_json(path: Path, obj) -> None:
     atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
-def results_record(cfg, *, t_start: float, methods: dict, disagreement: float,
+def results_record(cfg, *, t_start: float, methods: dict, disagreement: float | None,
                    histories: dict[str, list[dict]]) -> dict:
     """``results.json`` (DESIGN §8) of a finished run.
 
@@ -107,8 +107,9 @@ def results_record(cfg, *, t_start: float, methods: dict, disagreement: float,
 def print_timings(results: dict, resumed: bool) -> None:
     """The run's wall time and final consensus; for a ``resumed`` run also the training
     time of its methods, counting the segments before the resume."""
-    print(f"\nwall time {results['wall_s']:.0f} s; consensus max ‖ω_c − ω_c'‖ = "
-          f"{results['consensus_max_pairwise_cost_distance']:.1e}")
+    gap = results["consensus_max_pairwise_cost_distance"]
+    print(f"\nwall time {results['wall_s']:.0f} s"
+          + ("" if gap is None else f"; consensus max ‖ω_c − ω_c'‖ = {gap:.1e}"))
     if resumed and results["training_s"]:
         print("outer iterations, every segment of the resumed run counted: "
               + ", ".join(f"{k} {s:.0f} s" for k, s in results["training_s"].items()))

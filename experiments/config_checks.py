@@ -78,6 +78,7 @@ VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
     ("algo.prune_min_gain", float | None, _ge(0.0),
      "null (keep every constraint) or a number >= 0 (nats per trajectory)", "0.001"),
     ("algo.run_c_icrl", bool, None, "true or false", "true"),
+    ("algo.run_d_icrl", bool, None, "true or false", "true"),
     ("algo.inner_method", str, lambda x: x in ("paper", "gradient_tracking"),
      "'paper' or 'gradient_tracking'", "paper"),
     ("comm.timeout_s", float, _in_open(0.0, math.inf),
@@ -129,7 +130,8 @@ KNOWN_KEYS = {
     "graph": {"inner", "outer"},
     "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",
              "lsca_curvature", "prune_accrued", "init_cost_weights", "init_reward_weights",
-             "init_multiplier", "threshold", "prune_min_gain", "run_c_icrl"},
+             "init_multiplier", "threshold", "prune_min_gain", "run_c_icrl",
+             "run_d_icrl"},
     "baselines": {"run", "epsilon", "max_constraints", "penalty", "timesteps"},
 }
 _HYDRA_KEYS = {"_target_", "_partial_", "_args_", "_recursive_", "_convert_"}
@@ -295,6 +297,14 @@ def check_config(cfg: DictConfig) -> None:
     if drones and not is_simulated(cfg):
         problems.append("comm=distributed is not supported for the drone arena yet (its SAC "
                         "solvers are not checkpointed across processes); use comm=simulated.")
+    if OmegaConf.select(cfg, "algo.run_d_icrl", default=True) is False:
+        if drones:
+            problems.append("algo.run_d_icrl=false is not supported for the drone arena (its "
+                            "greedy baseline starts from D-ICRL's learned reward); set "
+                            "algo.run_d_icrl=true.")
+        elif not is_simulated(cfg):
+            problems.append("algo.run_d_icrl=false trains no learner processes, so "
+                            "comm=distributed has nothing to run; use comm=simulated.")
     if problems:
         raise ConfigError(f"{len(problems)} problem(s) in the configuration, nothing was "
                           f"computed:\n" + "\n".join(f"  - {p}" for p in problems))

@@ -484,13 +484,16 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
     """C-ICRL, the baselines (``baselines.run``) and the expert rows (in this process),
     then ``results.json`` and the table.
 
-    ``d_icrl``: the D-ICRL ``learners`` rows, ``history`` and final ``disagreement``.
+    ``d_icrl``: the D-ICRL ``learners`` rows, ``history`` and final ``disagreement``;
+    None when ``algo.run_d_icrl=false``.
     """
     a = cfg.algo
-    split = list(cfg.split)
-    methods: dict = {"D-ICRL": {"D": "✓" if len(split) > 1 else "×", "NATR": "✓",
-                                "learners": d_icrl["learners"]}}
-    histories = {"D-ICRL": d_icrl["history"]}
+    methods: dict = {}
+    histories: dict = {}
+    if d_icrl is not None:
+        methods["D-ICRL"] = {"D": "✓" if len(cfg.split) > 1 else "×", "NATR": "✓",
+                             "learners": d_icrl["learners"]}
+        histories["D-ICRL"] = d_icrl["history"]
     if a.run_c_icrl:
         pooled = p.demos  # every learner's trajectories, in learner order
         c = make_trainer(cfg, p, [pooled], c_icrl_comm, [pooled.n_trajectories])
@@ -510,7 +513,8 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
         methods[name] = {"learners": [row]}
 
     results = results_record(cfg, t_start=t_start, methods=methods,
-                             disagreement=d_icrl["disagreement"], histories=histories)
+                             disagreement=d_icrl and d_icrl["disagreement"],
+                             histories=histories)
     write_json(out / "results.json", results)
     # After results.json: a figure that fails to draw loses no result.
     figures = write_figures(cfg, out, p, methods, results["history"], logger)
@@ -585,14 +589,18 @@ def run_simulated(cfg, out: Path, t_start: float) -> None:
         announce(cfg, p, out)
         split = list(cfg.split)
         logger = make_logger(cfg, out)
-        trainer = make_trainer(cfg, p, p.shards, build(cfg.comm, n_learners=len(split)), split)
-        if states := ckpt.states("D-ICRL"):
-            trainer.load_state_dict(states[0])
-        run_of = lambda v: f"learner{v}"  # noqa: E731
-        train("D-ICRL", trainer, ckpt, logger, run_of, cfg, p.ctx, log_network=True, stop=stop)
-        gap = trainer.disagreement()  # of the trained ω_c: pruning below is local
-        rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out)
-        d_icrl = {"learners": rows, "history": trainer.history, "disagreement": gap}
+        d_icrl = None
+        if cfg.algo.run_d_icrl:
+            trainer = make_trainer(cfg, p, p.shards, build(cfg.comm, n_learners=len(split)),
+                                   split)
+            if states := ckpt.states("D-ICRL"):
+                trainer.load_state_dict(states[0])
+            run_of = lambda v: f"learner{v}"  # noqa: E731
+            train("D-ICRL", trainer, ckpt, logger, run_of, cfg, p.ctx, log_network=True,
+                  stop=stop)
+            gap = trainer.disagreement()  # of the trained ω_c: pruning below is local
+            rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out)
+            d_icrl = {"learners": rows, "history": trainer.history, "disagreement": gap}
         finish(cfg, out, p, d_icrl, logger, ckpt, t_start, build(cfg.comm, n_learners=1), stop)
 
 

@@ -281,6 +281,69 @@ def test_kill_9_or_sigint_at_a_random_moment_then_resume(tmp_path, reference, se
     assert comparable(tmp_path) == comparable(reference)
 
 
+# ---------------------------------------------------------------------- C-ICRL in its own job
+def test_c_icrl_trained_in_its_own_job_merges_into_the_run(tmp_path, reference):
+    # The run stops after D-ICRL; C-ICRL trains meanwhile in a job of its own.
+    run, own = tmp_path / "run", tmp_path / "own"
+    crashed = run_train(run, env={"DICRL_CRASH_AFTER": "D-ICRL:3"})
+    assert crashed.returncode == -9
+    alone = run_train(own, "algo.run_d_icrl=false")
+    assert alone.returncode == 0, alone.stderr[-3000:]
+    assert "consensus" not in alone.stdout  # no D-ICRL, so no disagreement to print
+    res = comparable(own)
+    assert list(res["methods"]) == ["C-ICRL", "Experts (ground truth)", "Experts (nominal)"]
+    assert res["consensus_max_pairwise_cost_distance"] is None
+    assert res["methods"]["C-ICRL"] == comparable(reference)["methods"]["C-ICRL"]
+
+    merged = subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "checkpoints.py"), "merge",
+         str(own / "checkpoint.pt"), str(run / "checkpoint.pt"), "--method", "C-ICRL"],
+        capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert merged.returncode == 0, merged.stderr
+    assert "C-ICRL now after outer iteration 3" in merged.stdout
+    resumed = run_train(run, "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "{'D-ICRL': 3, 'C-ICRL': 3}" in resumed.stdout
+    assert comparable(run) == comparable(reference)
+
+
+def test_merge_refuses_missing_stale_and_foreign_states(tmp_path):
+    def checkpoint(name: str, **states: tuple[int, dict]) -> Path:
+        path = tmp_path / name
+        torch.save({k.replace("_", "-"): {"outer_iteration": n, "run_config": config}
+                    for k, (n, config) in states.items()}, path)
+        return path
+
+    ours = {"seed": 0, "algo.inner_steps": 2}
+    run = checkpoint("run.pt", D_ICRL=(3, ours), C_ICRL=(1, ours))
+    with pytest.raises(ValueError, match="holds no C-ICRL state"):
+        checkpoints.merge(checkpoint("none.pt", D_ICRL=(3, ours)), run, ["C-ICRL"])
+    with pytest.raises(ValueError, match="already holds C-ICRL after outer iteration 1"):
+        checkpoints.merge(checkpoint("early.pt", C_ICRL=(1, ours)), run, ["C-ICRL"])
+    with pytest.raises(ValueError, match=r"another configuration .*seed: 1 there, 0 here"):
+        checkpoints.merge(checkpoint("other.pt", C_ICRL=(3, {**ours, "seed": 1})), run,
+                          ["C-ICRL"])
+    (tmp_path / "junk.pt").write_text("not a checkpoint")
+    with pytest.raises(ValueError, match="cannot be read as a checkpoint"):
+        checkpoints.merge(tmp_path / "junk.pt", run, ["C-ICRL"])
+    assert torch.load(run, weights_only=True)["C-ICRL"]["outer_iteration"] == 1  # untouched
+    assert checkpoints.merge(checkpoint("done.pt", C_ICRL=(3, ours)), run, ["C-ICRL"]) == {
+        "C-ICRL": 3}
+    saved = torch.load(run, weights_only=True)
+    assert (saved["D-ICRL"]["outer_iteration"], saved["C-ICRL"]["outer_iteration"]) == (3, 3)
+
+
+def test_run_d_icrl_false_is_refused_where_it_cannot_run():
+    with pytest.raises(config_checks.ConfigError, match="nothing to run; use comm=simulated"):
+        config_checks.check_config(compose_train(*TINY, "comm=distributed",
+                                                 "algo.run_d_icrl=false"))
+    with pytest.raises(config_checks.ConfigError, match="starts from D-ICRL's learned reward"):
+        config_checks.check_config(compose_train("experiment=table2_quick",
+                                                 "algo.run_d_icrl=false"))
+    with pytest.raises(config_checks.ConfigError, match="algo.run_d_icrl='no' is invalid"):
+        config_checks.check_config(compose_train(*TINY, "algo.run_d_icrl=no"))
+
+
 # ---------------------------------------------------------------------- privacy
 class ContentRecorder(SimulatedCommunicator):
     """Keeps a copy of every value sent, not only its field and shape."""
