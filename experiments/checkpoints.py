@@ -202,8 +202,6 @@ def interrupt_on_signals() -> None:
         signal.signal(sig, handle)
 
 
-
-
 def merge(source: Path, into: Path, names: list[str]) -> dict[str, int]:
     """Copy the trainer states ``names`` (e.g. ``C-ICRL``) of ``source`` into ``into``.
 

@@ -513,7 +513,7 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
         methods[name] = {"learners": [row]}
 
     results = results_record(cfg, t_start=t_start, methods=methods,
-                             disagreement=d_icrl and d_icrl["disagreement"],
+                             disagreement=None if d_icrl is None else d_icrl["disagreement"],
                              histories=histories)
     write_json(out / "results.json", results)
     # After results.json: a figure that fails to draw loses no result.
