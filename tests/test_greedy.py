@@ -3,7 +3,9 @@ constraint inference (ME-greedy, MCE-greedy) of ``dicrl_torch.algos.greedy``."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import io
 import itertools
 import math
 
@@ -363,22 +365,28 @@ def test_greedy_models_coincide_for_deterministic_dynamics():
     assert np.allclose(me.log_likelihood, mce.log_likelihood, atol=1e-9)
 
 
-def test_mce_skips_a_candidate_a_slipped_demonstration_contradicts():
-    """A demonstration that tried N at (0,2) and slipped: under the MCE model with a hard
-    mask on (0,1) that action is impossible (it risks entering), so (0,1) is infeasible;
-    the ME model's optimistic dynamics allow it."""
+def slipped_problem() -> tuple[dict, SharedIndicatorCostBasis]:
+    """3x3, 20% slip, one demonstration that tried N at (0,2) and slipped: the greedy's
+    keyword arguments (ε = 0) and the cost basis."""
     model = TabularGridModel(layout=GridLayout.open_grid(3, 1), horizon=3, p_success=0.8)
-    solver = FactoredSoftBellman(model=model, dtype=torch.float64)
     rb, cb = GoalClosenessRewardBasis(model), SharedIndicatorCostBasis(model)
     N_, E_ = 1, 3  # action indices of N and E
     demos = Demonstrations(states=np.array([[[6], [6], [7], [8]]]),
                            actions=np.array([[[N_], [E_], [E_]]]), n_cells=9, n_actions=9)
+    return dict(solver=FactoredSoftBellman(model=model, dtype=torch.float64),
+                reward=rb().weighted(rb.true_weights()), cost_basis=cb, demonstrations=demos,
+                epsilon=0.0), cb
+
+
+def test_mce_skips_a_candidate_a_slipped_demonstration_contradicts():
+    """Under the MCE model with a hard mask on (0,1) the slipped demonstration's N at
+    (0,2) is impossible (it risks entering), so (0,1) is infeasible; the ME model's
+    optimistic dynamics allow it."""
+    kw, cb = slipped_problem()
     target = cb.names.index("cell(0,1)")
     results = {}
     for kind in ("mce", "me"):
-        g = GreedyConstraintInference(solver=solver, reward=rb().weighted(rb.true_weights()),
-                                      cost_basis=cb, demonstrations=demos, model=kind,
-                                      epsilon=0.0)
+        g = GreedyConstraintInference(**kw, model=kind)
         assert g.candidates[target]
         only = torch.zeros(cb.dim, dtype=torch.bool)
         only[target] = True
@@ -446,3 +454,69 @@ def test_greedy_refuses_bad_input():
         constraint_masks(cb(), torch.zeros(3, dtype=torch.bool), model)
     # the default ε is BIC's ln(m) / (2m)
     assert GreedyConstraintInference(**kw).epsilon == pytest.approx(math.log(2) / 4)
+
+
+def _saved(record: dict) -> dict:
+    """``record`` as a checkpoint keeps it: through torch.save / load(weights_only=True)."""
+    buffer = io.BytesIO()
+    torch.save(record, buffer)
+    buffer.seek(0)
+    return torch.load(buffer, weights_only=True)
+
+
+def _outcome(res) -> tuple:
+    steps = [dataclasses.replace(s, seconds=0.0) for s in res.steps]
+    return (res.constraint_mask.tolist(), res.added, res.added_names, res.log_likelihood,
+            res.improvement, steps, res.stop_reason,
+            None if res.terminal_value is None else res.terminal_value.tolist())
+
+
+@pytest.mark.parametrize("problem", ["ME, slip", "MCE, slip", "MCE, infeasible trial"])
+def test_greedy_resumed_from_any_saved_step_ends_as_the_uninterrupted_run(problem):
+    if problem == "MCE, infeasible trial":  # the records carry an infeasible candidate
+        kw, _ = slipped_problem()
+        kw["model"] = "mce"
+    else:  # ε = 0: on to max_constraints
+        _, _, solver, cb, reward, demos = identifiable_problem(0.8, n_demos=30)
+        kw = dict(solver=solver, reward=reward, cost_basis=cb, demonstrations=demos,
+                  model=problem[:problem.index(",")].lower(), epsilon=0.0, max_constraints=4)
+    records: list[dict] = []
+    whole = GreedyConstraintInference(**kw).run(on_step=lambda r: records.append(_saved(r)))
+    assert len(whole.steps) >= 3, whole.steps
+    assert any(s.infeasible for s in whole.steps) == (problem == "MCE, infeasible trial")
+    progress = [r["evaluated"] + r["finished"] for r in records]
+    assert progress == list(range(1, len(records) + 1))  # one more at every call
+    assert records[-1]["finished"] and not any(r["finished"] for r in records[:-1])
+    for record in records:
+        g = GreedyConstraintInference(**kw)
+        resumed = g.run(resume_from=record)
+        assert _outcome(resumed) == _outcome(whole), record["evaluated"]
+        assert torch.equal(g.expected_accrual(resumed.solution),
+                           g.expected_accrual(whole.solution))
+        # only the re-solve of the saved set and the trials after it
+        assert g.solves == 1 + len(whole.steps) - record["evaluated"]
+
+
+def test_greedy_refuses_progress_of_another_problem_or_setting():
+    _, _, solver, cb, reward, demos = identifiable_problem(1.0, n_demos=20)
+    kw = dict(solver=solver, reward=reward, cost_basis=cb, demonstrations=demos, epsilon=0.0,
+              max_constraints=2)
+    records: list[dict] = []
+    GreedyConstraintInference(**kw).run(on_step=records.append)
+    record = records[0]
+    with pytest.raises(ValueError, match="was made with .*'epsilon': 0.0"):
+        GreedyConstraintInference(**{**kw, "epsilon": 0.1}).run(resume_from=record)
+    with pytest.raises(ValueError, match="was made with .*'model': 'mce'"):
+        GreedyConstraintInference(**kw, model="me").run(resume_from=record)
+    with pytest.raises(ValueError, match="does not belong to this problem"):
+        GreedyConstraintInference(**{**kw, "reward": reward.scale(2.0)}
+                                  ).run(resume_from=record)
+    with pytest.raises(ValueError, match="lacks"):
+        GreedyConstraintInference(**kw).run(resume_from={"model": "mce"})
+    other = identifiable_problem(1.0, n_demos=1)[-1]
+    with pytest.raises(ValueError, match="other candidate constraints"):
+        GreedyConstraintInference(**{**kw, "demonstrations": other}).run(resume_from=record)
+    g = GreedyConstraintInference(**kw)
+    g.resumable = False  # as the SAC greedy, whose model is a warm-started policy
+    with pytest.raises(ValueError, match="cannot be resumed"):
+        g.run(resume_from=record)

@@ -61,6 +61,7 @@ BIC's price of one more parameter (0.023 nats per trajectory for ``m = 100``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -277,7 +278,9 @@ class GreedyLoop:
     A subclass sets ``candidates`` ``[l]`` bool, ``names``, ``epsilon``,
     ``max_constraints``, ``progress``, ``label`` and ``model_name`` and implements
     :meth:`solve`, :meth:`mean_log_likelihood` and :meth:`expected_accrual`; a
-    stateful model (a warm-started policy) also overrides :meth:`accept`.
+    stateful model (a warm-started policy) also overrides :meth:`accept` and sets
+    ``resumable = False``: its model is more than the constraint set, so a run cannot
+    be continued from a saved :meth:`run` progress record.
     """
 
     candidates: torch.Tensor
@@ -287,6 +290,7 @@ class GreedyLoop:
     progress: bool
     label: str
     model_name: str
+    resumable: bool = True
 
     def solve(self, selected: torch.Tensor) -> tuple[Any, Any]:
         """The model with constraint set ``selected`` ``[l]`` bool: (solution, extra)."""
@@ -302,25 +306,66 @@ class GreedyLoop:
     def accept(self, solution: Any, extra: Any) -> None:
         """Called when ``solution`` becomes the current model (a no-op by default)."""
 
-    def run(self) -> GreedyResult:
+    def run(self, *, resume_from: dict | None = None,
+            on_step: Callable[[dict], None] | None = None) -> GreedyResult:
+        """Add constraints greedily until the stopping rule (module docstring) holds.
+
+        Args:
+            resume_from: a progress record that ``on_step`` gave an earlier run of the
+                same problem and settings (e.g. read back from a checkpoint). The loop
+                re-solves the model of its constraint set and goes on from there, so it
+                ends as the uninterrupted run does; a finished record is only re-solved.
+            on_step: called with the progress record after every evaluated candidate
+                and once more if the loop then stops without evaluating one. The record
+                holds only tensors, numbers, strings and lists (``torch.save`` and
+                ``torch.load(weights_only=True)`` keep it); ``evaluated`` (candidates
+                tried) plus ``finished`` grows by one at each call.
+
+        Raises:
+            ValueError: ``resume_from`` belongs to another problem or other settings, or
+                the model cannot be resumed.
+        """
         t_start = time.perf_counter()
-        selected = torch.zeros(len(self.candidates), dtype=torch.bool)
+        if resume_from is None:
+            selected = torch.zeros(len(self.candidates), dtype=torch.bool)
+            infeasible = torch.zeros_like(selected)
+            added, lls, gains, steps, stop, seconds_before = [], [], [], [], None, 0.0
+        else:
+            selected, infeasible, added, lls, gains, steps, stop, seconds_before = \
+                self._restore(resume_from)
         sol, extra = self.solve(selected)
         self.accept(sol, extra)
         ll = self.mean_log_likelihood(sol)
-        lls, gains, added, steps = [ll], [], [], []
-        infeasible = torch.zeros_like(selected)
+        if resume_from is None:
+            lls = [ll]
+        elif not math.isclose(ll, lls[-1], rel_tol=1e-9, abs_tol=1e-9):
+            raise ValueError(
+                f"The saved {self.label} progress does not belong to this problem: its "
+                f"constraint set has mean log-likelihood {lls[-1]:.9g} there and {ll:.9g} "
+                f"here (another reward, solver or set of demonstrations). Start the "
+                f"greedy over.")
+        ll = lls[-1]  # the saved number exactly: the resumed run repeats the uninterrupted one
+
+        def report() -> None:
+            if on_step is not None:
+                on_step(self._record(selected, infeasible, added, lls, gains, steps, stop,
+                                     seconds_before + time.perf_counter() - t_start))
+
         bar = None
-        if self.progress:
+        if self.progress and stop is None:
             from tqdm.auto import tqdm
             total = min(self.max_constraints, int(self.candidates.sum()))
-            bar = tqdm(total=total, desc=self.label)
-        stop = "max_constraints reached"
-        while len(added) < self.max_constraints:
+            bar = tqdm(total=total, initial=len(added), desc=self.label)
+        while stop is None:
+            if len(added) >= self.max_constraints:
+                stop = "max_constraints reached"
+                report()
+                break
             accrual = self.expected_accrual(sol)  # [l]
             open_ = self.candidates & ~selected & ~infeasible & (accrual > _NEGLIGIBLE_ACCRUAL)
             if not open_.any():
                 stop = "no feasible candidate left with non-negligible expected accrual"
+                report()
                 break
             j = int(torch.where(open_, accrual, -math.inf).argmax())
             t0 = time.perf_counter()
@@ -336,18 +381,18 @@ class GreedyLoop:
                                     infeasible=bad, seconds=time.perf_counter() - t0))
             if bad:
                 infeasible[j] = True  # more masks only keep it impossible: never retry
-                continue
-            if not accepted:
+            elif not accepted:
                 stop = f"improvement {gain:.3g} < epsilon {self.epsilon:g}"
-                break
-            selected, sol, extra, ll = trial, new_sol, new_extra, new_ll
-            self.accept(sol, extra)
-            added.append(j)
-            lls.append(ll)
-            gains.append(gain)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(added=self.names[j], ll=f"{ll:.2f}")
+            else:
+                selected, sol, extra, ll = trial, new_sol, new_extra, new_ll
+                self.accept(sol, extra)
+                added.append(j)
+                lls.append(ll)
+                gains.append(gain)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(added=self.names[j], ll=f"{ll:.2f}")
+            report()
         if bar is not None:
             bar.close()
         return GreedyResult(constraint_mask=selected, added=added,
@@ -355,7 +400,44 @@ class GreedyLoop:
                             improvement=gains, steps=steps, solution=sol,
                             terminal_value=extra if isinstance(extra, torch.Tensor) else None,
                             stop_reason=stop, model=self.model_name,
-                            seconds=time.perf_counter() - t_start)
+                            seconds=seconds_before + time.perf_counter() - t_start)
+
+    # ------------------------------------------------------------------ progress records
+    def _settings(self) -> dict:
+        """What a progress record must have been made with to be continued here."""
+        return {"model": self.model_name, "epsilon": self.epsilon,
+                "max_constraints": self.max_constraints}
+
+    def _record(self, selected, infeasible, added, lls, gains, steps, stop, seconds) -> dict:
+        return {**self._settings(), "candidates": self.candidates.clone(),
+                "selected": selected.clone(), "infeasible": infeasible.clone(),
+                "added": list(added), "log_likelihood": list(lls), "improvement": list(gains),
+                "steps": [dataclasses.asdict(s) for s in steps], "stop_reason": stop,
+                "seconds": seconds, "evaluated": len(steps), "finished": stop is not None}
+
+    def _restore(self, record: dict) -> tuple:
+        if not self.resumable:
+            raise ValueError(f"{self.label} cannot be resumed: its model is more than the "
+                             f"constraint set (a warm-started policy). Run it from the start.")
+        missing = sorted({"candidates", "selected", "infeasible", "added", "log_likelihood",
+                          "improvement", "steps", "stop_reason", "seconds"}
+                         - set(record))
+        if missing:
+            raise ValueError(f"The saved {self.label} progress lacks {missing}; it was not "
+                             f"written by GreedyLoop.run. Start the greedy over.")
+        theirs = {k: record.get(k) for k in self._settings()}
+        if theirs != self._settings():
+            raise ValueError(f"The saved {self.label} progress was made with {theirs}, this "
+                             f"run has {self._settings()}. Continue it with its settings, or "
+                             f"start the greedy over.")
+        if not torch.equal(torch.as_tensor(record["candidates"]), self.candidates):
+            raise ValueError(f"The saved {self.label} progress has other candidate "
+                             f"constraints than this problem (another cost basis or other "
+                             f"demonstrations). Start the greedy over.")
+        steps = [GreedyStep(**s) for s in record["steps"]]
+        return (record["selected"].clone(), record["infeasible"].clone(), list(record["added"]),
+                list(record["log_likelihood"]), list(record["improvement"]), steps,
+                record["stop_reason"], float(record["seconds"]))
 
 
 class GreedyConstraintInference(GreedyLoop):
@@ -493,6 +575,8 @@ class SACGreedyConstraintInference(GreedyLoop):
         max_constraints: at most this many (None: no limit).
         progress: a tqdm bar over greedy steps.
     """
+
+    resumable = False  # each trial's policy is warm-started from the last accepted one
 
     def __init__(self, *, solver, reward_weights, demonstrations, penalty: float = 10.0,
                  timesteps: int = 2000, epsilon: float | None = None,
