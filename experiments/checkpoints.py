@@ -59,6 +59,16 @@ def config_diff(a: dict, b: dict, a_is: str, b_is: str) -> str:
                      for k in keys[:6]) + ("; ..." if len(keys) > 6 else "")
 
 
+def progress_of(state: dict) -> str:
+    """How far a saved state is: a trainer's outer iterations, a greedy baseline's
+    candidates (its ``greedy`` progress record, ``dicrl_torch.algos.greedy``)."""
+    if "greedy" not in state:
+        return f"after outer iteration {state['outer_iteration']}"
+    record = state["greedy"]
+    return (f"at {record['evaluated']} candidates evaluated"
+            f"{', finished' if record['finished'] else ''}")
+
+
 class Checkpoints:
     """Trainer states by name in one file, written atomically (to a temporary file, then
     renamed: a crash leaves the previous checkpoint intact).
@@ -87,9 +97,10 @@ class Checkpoints:
             self.saved = self._load(path)
             for state in self.saved.values():
                 self._check_config(state.get("run_config"))
-            done = {k: v["outer_iteration"] for k, v in self.saved.items()
-                    if not k.endswith(":previous")}
-            print(f"resuming from {path} (outer iterations done: {done})")
+            latest = {k: v for k, v in self.saved.items() if not k.endswith(":previous")}
+            done = {k: v["outer_iteration"] for k, v in latest.items() if "greedy" not in v}
+            greedy = "".join(f"; {k} {progress_of(v)}" for k, v in latest.items() if "greedy" in v)
+            print(f"resuming from {path} (outer iterations done: {done}{greedy})")
         elif resume:
             print(f"resume=true but no checkpoint {path.name} in {path.parent}; starting "
                   f"from scratch")
@@ -125,13 +136,18 @@ class Checkpoints:
         return [self.saved[k] for k in (name, f"{name}:previous") if k in self.saved]
 
     def save(self, name: str, trainer: DICRL) -> None:
-        n = trainer.state.outer_iteration
+        self.save_state(name, trainer.state_dict())
+
+    def save_state(self, name: str, state: dict) -> None:
+        """Save ``state`` as ``name``; ``state["outer_iteration"]`` counts its progress
+        (a trainer's outer iterations, a greedy baseline's candidates evaluated)."""
+        n = state["outer_iteration"]
         last = self.saved.get(name)
         if self.keep_previous and last is not None and last["outer_iteration"] != n:
             self.saved[f"{name}:previous"] = last
         # A copy: the trainer goes on changing its history list and, when pruning, ω_c in
         # place, and this state may be written again (with another name's save).
-        self.saved[name] = {**copy.deepcopy(trainer.state_dict()), "run_config": self.config}
+        self.saved[name] = {**copy.deepcopy(state), "run_config": self.config}
         atomic_write(self.path, lambda tmp: torch.save(self.saved, tmp))
         crash = os.environ.get("DICRL_CRASH_AFTER")  # fault injection for tests
         if not self.crashed and crash in {f"{tag}:{n}" for tag in (name, *self.crash_tags)}:
@@ -157,9 +173,9 @@ class Interrupted(Exception):
 class StopOnSignal:
     """SIGINT/SIGTERM handling of the all-in-one-process run (a context manager).
 
-    The first signal during training lets the current outer iteration finish (a state
-    in the middle of one is no consistent checkpoint; an iteration takes seconds), then
-    :func:`train` checkpoints it and raises :class:`Interrupted`. A second signal, or one
+    The first signal during training lets the current outer iteration (or greedy
+    candidate) finish (a state in the middle of one is no consistent checkpoint), then
+    :func:`train` (or :func:`run_greedy`) checkpoints it and raises :class:`Interrupted`. A second signal, or one
     outside training, raises at once: every checkpoint is written atomically, so the
     last one stays valid, and everything after training is recomputed on resume.
     """
@@ -182,7 +198,8 @@ class StopOnSignal:
         if self.training and self.signum is None:
             self.signum = signum
             print(f"\n{signal.Signals(signum).name} received: stopping after this outer "
-                  f"iteration, with a checkpoint (send it again to stop at once)",
+                  f"iteration (or greedy candidate), with a checkpoint (send it again to "
+                  f"stop at once)",
                   file=sys.stderr, flush=True)
             return
         raise Interrupted(signum)
@@ -203,9 +220,11 @@ def interrupt_on_signals() -> None:
 
 
 def merge(source: Path, into: Path, names: list[str]) -> dict[str, int]:
-    """Copy the trainer states ``names`` (e.g. ``C-ICRL``) of ``source`` into ``into``.
+    """Copy the saved states ``names`` (e.g. ``C-ICRL``, ``ME-greedy``) of ``source``
+    into ``into``.
 
-    A method trained in its own job (``algo.run_d_icrl=false``) thus joins the run it
+    A method trained in its own job (``algo.run_d_icrl=false``, and
+    ``algo.run_c_icrl=false`` for the greedy baselines alone) thus joins the run it
     belongs to, which then resumes past it. Both files must have been written under the
     same training config, and ``into`` must not be written meanwhile (stop its run first).
 
@@ -228,7 +247,7 @@ def merge(source: Path, into: Path, names: list[str]) -> dict[str, int]:
             raise ValueError(f"{source}'s {name} was trained under another configuration "
                              f"than {into}'s run ({config_diff(theirs, config, 'there', 'here')}"
                              f"); train it again with the run's overrides.")
-        n, have = src[name]["outer_iteration"], dst.get(name, {}).get("outer_iteration", 0)
+        n, have = src[name]["outer_iteration"], dst.get(name, {}).get("outer_iteration", -1)
         if have >= n:
             raise ValueError(f"{into} already holds {name} after outer iteration {have}, and "
                              f"{source} only after {n}; nothing to merge.")
@@ -249,21 +268,22 @@ def main(argv: list[str] | None = None) -> None:
     commands = parser.add_subparsers(dest="command", required=True)
     m = commands.add_parser(
         "merge", help="copy a method's state from one run's checkpoint into another's",
-        description="Copy trainer states (e.g. C-ICRL, trained in its own job with "
-                    "algo.run_d_icrl=false) from SOURCE into INTO, so that the run of INTO "
-                    "resumes past them. Stop the run that writes INTO first.")
+        description="Copy saved states (C-ICRL trained in its own job with "
+                    "algo.run_d_icrl=false, a greedy baseline's progress) from SOURCE into "
+                    "INTO, so that the run of INTO resumes past them. Stop the run that "
+                    "writes INTO first.")
     m.add_argument("source", type=Path, help="checkpoint.pt holding the trained method")
     m.add_argument("into", type=Path, help="checkpoint.pt of the run it joins")
     m.add_argument("--method", action="append", required=True,
-                   help="state to copy (repeatable), e.g. C-ICRL")
+                   help="state to copy (repeatable): C-ICRL, ME-greedy or MCE-greedy")
     args = parser.parse_args(argv)
     try:
         copied = merge(args.source, args.into, args.method)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
-    print(f"{args.into}: " + ", ".join(f"{k} now after outer iteration {n}"
-                                       for k, n in copied.items()))
+    saved = Checkpoints._load(args.into)
+    print(f"{args.into}: " + ", ".join(f"{k} now {progress_of(saved[k])}" for k in copied))
 
 
 if __name__ == "__main__":

@@ -54,6 +54,7 @@ from checkpoints import (
     Interrupted,
     StopOnSignal,
     interrupt_on_signals,
+    progress_of,
     training_config,
 )
 from common import (
@@ -81,7 +82,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dicrl_torch.algos.dicrl import DICRL, NonFiniteError
-from dicrl_torch.algos.greedy import GreedyConstraintInference
+from dicrl_torch.algos.greedy import GreedyConstraintInference, GreedyResult
 from dicrl_torch.comm import SimulatedCommunicator
 from dicrl_torch.comm.distributed import (
     ConfigMismatchError,
@@ -331,7 +332,40 @@ def make_baselines(cfg, p: Problem, progress: bool = True) -> dict[str, GreedyCo
             for name in b.run}
 
 
-def run_baselines(cfg, p: Problem, logger, out: Path) -> tuple[dict, dict]:
+def run_greedy(name: str, greedy: GreedyConstraintInference, ckpt: Checkpoints,
+               stop: StopOnSignal | None) -> GreedyResult:
+    """One greedy baseline, checkpointed (as ``name``) after every candidate it evaluates
+    and continued from its saved progress on resume.
+
+    Raises:
+        Interrupted: ``stop`` caught a signal; the last evaluated candidate is saved.
+    """
+    saved = ckpt.states(name)
+
+    def save(record: dict) -> None:
+        ckpt.save_state(name, {"greedy": record,
+                               "outer_iteration": record["evaluated"] + record["finished"]})
+        if stop is not None and stop.signum is not None:
+            stop.training = False
+            raise Interrupted(stop.signum, f"{name} saved {progress_of(ckpt.saved[name])}")
+
+    if stop is not None:
+        stop.training = True  # a first signal lets the current candidate finish
+    try:
+        return greedy.run(resume_from=saved[0]["greedy"] if saved else None, on_step=save)
+    except ValueError as e:
+        if not saved:
+            raise
+        raise ValueError(f"{e} (The progress is {name} in {ckpt.path}; resume with the "
+                         f"interrupted run's baselines.epsilon and "
+                         f"baselines.max_constraints.)") from e
+    finally:
+        if stop is not None:
+            stop.training = False
+
+
+def run_baselines(cfg, p: Problem, logger, out: Path, ckpt: Checkpoints,
+                  stop: StopOnSignal | None = None) -> tuple[dict, dict]:
     """Run the requested greedy baselines: their table rows and per-step histories.
 
     Every greedy step (a constraint added) logs ``eval/FPR``, ``eval/FNR`` and
@@ -342,7 +376,7 @@ def run_baselines(cfg, p: Problem, logger, out: Path) -> tuple[dict, dict]:
 
     methods, histories = {}, {}
     for name, greedy in make_baselines(cfg, p).items():
-        res = greedy.run()
+        res = run_greedy(name, greedy, ckpt, stop)
         run = name.lower().replace("-", "_")
         mask = torch.zeros_like(res.constraint_mask)
         history = []
@@ -504,7 +538,7 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
         methods["C-ICRL"] = {"D": "×", "NATR": "✓", "learners": evaluate_learners(
             "C-ICRL", c, p, cfg, logger, lambda v: "c_icrl", out)}
         histories["C-ICRL"] = c.history
-    baseline_rows, baseline_histories = run_baselines(cfg, p, logger, out)
+    baseline_rows, baseline_histories = run_baselines(cfg, p, logger, out, ckpt, stop)
     methods.update(baseline_rows)  # before the experts: the paper's row order
     histories.update(baseline_histories)
     for name, sol in (("Experts (ground truth)", p.experts), ("Experts (nominal)", p.nominal)):

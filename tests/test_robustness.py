@@ -307,6 +307,55 @@ def test_c_icrl_trained_in_its_own_job_merges_into_the_run(tmp_path, reference):
     assert comparable(run) == comparable(reference)
 
 
+# ---------------------------------------------------------------------- greedy baselines
+@pytest.fixture(scope="module")
+def reference_greedy(tmp_path_factory) -> Path:
+    """The uninterrupted TINY run with both greedy baselines."""
+    run_dir = tmp_path_factory.mktemp("reference_greedy")
+    out = run_train(run_dir, "baselines=greedy")
+    assert out.returncode == 0, out.stderr[-3000:]
+    saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    for name in ("ME-greedy", "MCE-greedy"):  # saved after each of its 5 candidates, and done
+        assert saved[name]["greedy"]["finished"] and saved[name]["outer_iteration"] == 6
+    return run_dir
+
+
+@pytest.mark.parametrize("crash, sig", [("MCE-greedy:2", "KILL"), ("ME-greedy:3", "TERM")])
+def test_greedy_baseline_stopped_mid_search_resumes_where_it_was(tmp_path, reference_greedy,
+                                                                  crash, sig):
+    stopped = run_train(tmp_path, "baselines=greedy",
+                        env={"DICRL_CRASH_AFTER": crash, "DICRL_CRASH_SIGNAL": sig})
+    assert stopped.returncode == (-9 if sig == "KILL" else 128 + signal.SIGTERM)
+    assert not (tmp_path / "results.json").exists()
+    name, n = crash.split(":")
+    if sig == "TERM":
+        assert f"checkpoint {name} saved at {n} candidates evaluated" in stopped.stderr
+    resumed = run_train(tmp_path, "baselines=greedy", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"{name} at {n} candidates evaluated)" in resumed.stdout
+    assert comparable(tmp_path) == comparable(reference_greedy)
+
+
+def test_greedy_baselines_in_a_job_of_their_own_merge_into_the_run(tmp_path, reference_greedy):
+    run, own = tmp_path / "run", tmp_path / "own"
+    crashed = run_train(run, "baselines=greedy", env={"DICRL_CRASH_AFTER": "C-ICRL:3"})
+    assert crashed.returncode == -9
+    alone = run_train(own, "baselines=greedy", "algo.run_d_icrl=false", "algo.run_c_icrl=false")
+    assert alone.returncode == 0, alone.stderr[-3000:]
+    assert list(comparable(own)["methods"]) == [
+        "ME-greedy", "MCE-greedy", "Experts (ground truth)", "Experts (nominal)"]
+    merged = subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "checkpoints.py"), "merge",
+         str(own / "checkpoint.pt"), str(run / "checkpoint.pt"), "--method", "ME-greedy",
+         "--method", "MCE-greedy"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert merged.returncode == 0, merged.stderr
+    assert "ME-greedy now at 5 candidates evaluated, finished" in merged.stdout
+    resumed = run_train(run, "baselines=greedy", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "ME-greedy:" not in resumed.stderr  # no greedy step ran again: no progress bar
+    assert comparable(run) == comparable(reference_greedy)
+
+
 def test_merge_refuses_missing_stale_and_foreign_states(tmp_path):
     def checkpoint(name: str, **states: tuple[int, dict]) -> Path:
         path = tmp_path / name
