@@ -175,9 +175,10 @@ class StopOnSignal:
 
     The first signal during training lets the current outer iteration (or greedy
     candidate) finish (a state in the middle of one is no consistent checkpoint), then
-    :func:`train` (or :func:`run_greedy`) checkpoints it and raises :class:`Interrupted`. A second signal, or one
-    outside training, raises at once: every checkpoint is written atomically, so the
-    last one stays valid, and everything after training is recomputed on resume.
+    ``train.train`` (or ``train.run_greedy``) checkpoints it and raises
+    :class:`Interrupted`. A second signal, or one outside training, raises at once: every
+    checkpoint is written atomically, so the last one stays valid, and everything after
+    training is recomputed on resume.
     """
 
     def __init__(self) -> None:

@@ -13,7 +13,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
-from tiny_train import TINY, comparable, run_train
+from tiny_train import TINY, TRAIN, comparable, run_train
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -103,7 +103,7 @@ def test_train_config_groups_instantiate(graph, logger, tmp_path):
 
 def test_train_runs_end_to_end(tmp_path):
     out = subprocess.run(
-        [sys.executable, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={tmp_path}",
+        [sys.executable, str(TRAIN), f"hydra.run.dir={tmp_path}",
          "env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
          "algo.outer_iterations=1", "algo.inner_steps=2", "eval_episodes=10",
          "n_demonstrations=10", "split=[4,6]"],
@@ -170,7 +170,7 @@ def test_resume_elsewhere_restores_the_tensorboard_curves(tmp_path):
 
     def run_logged(run_dir, *extra, env=None):
         return subprocess.run(
-            [sys.executable, str(ROOT / "experiments" / "train.py"),
+            [sys.executable, str(TRAIN),
              f"hydra.run.dir={run_dir}", *[o for o in TINY if not o.startswith("logger=")],
              *extra], capture_output=True, text=True, cwd=ROOT, timeout=600,
             env={**os.environ, **(env or {})})

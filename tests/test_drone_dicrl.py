@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from tiny_train import TRAIN
 
 from dicrl_torch.algos.dicrl import DICRL, StepSizes
 from dicrl_torch.algos.greedy import SACGreedyConstraintInference
@@ -193,7 +194,7 @@ TINY = ["experiment=table2_quick", "env.arena.max_steps=20", "eval_episodes=2",
 
 
 def test_table2_entry_point_end_to_end(tmp_path):
-    out = subprocess.run([sys.executable, str(ROOT / "experiments" / "train.py"),
+    out = subprocess.run([sys.executable, str(TRAIN),
                           f"hydra.run.dir={tmp_path}", *TINY], capture_output=True, text=True,
                          cwd=ROOT, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -219,7 +220,7 @@ def test_table2_entry_point_end_to_end(tmp_path):
 def test_table2_quick_runs_at_full_scale(tmp_path):
     """experiment=table2_quick as shipped (~3 min): every row, figure and history entry.
     Its numbers are far from the paper's (README); this checks the run, not the targets."""
-    out = subprocess.run([sys.executable, str(ROOT / "experiments" / "train.py"),
+    out = subprocess.run([sys.executable, str(TRAIN),
                           f"hydra.run.dir={tmp_path}", "experiment=table2_quick"],
                          capture_output=True, text=True, cwd=ROOT, timeout=1200)
     assert out.returncode == 0, out.stderr[-3000:]

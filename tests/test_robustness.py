@@ -24,7 +24,7 @@ import tiny_dicrl
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
-from tiny_train import TINY, comparable, run_train
+from tiny_train import TINY, TRAIN, comparable, run_train
 
 from dicrl_torch.algos.dicrl import NonFiniteError, StepSizes
 from dicrl_torch.algos.icrl import model_reward
@@ -267,7 +267,7 @@ def test_kill_9_or_sigint_at_a_random_moment_then_resume(tmp_path, reference, se
     rng = np.random.default_rng(seed)
     sig = signal.SIGKILL if seed != 1 else signal.SIGINT
     proc = subprocess.Popen(
-        [sys.executable, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={tmp_path}",
+        [sys.executable, str(TRAIN), f"hydra.run.dir={tmp_path}",
          *TINY, "algo.outer_iterations=3"], cwd=ROOT, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True)
     time.sleep(float(rng.uniform(3.0, 9.0)))  # start-up takes ~4 s on 2 cores

@@ -10,13 +10,10 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
+from tiny_train import TINY, TRAIN
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
-# tests/test_configs.py's TINY: 1 expert, T = 8, 2 learners, 3 outer iterations
-TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
-        "algo.outer_iterations=3", "algo.inner_steps=2", "eval_episodes=10",
-        "n_demonstrations=10", "split=[4,6]", "logger=none"]
 PAPER_ORDER = ["D-ICRL", "C-ICRL", "ME-greedy", "MCE-greedy", "Experts (ground truth)",
                "Experts (nominal)"]
 
@@ -57,7 +54,7 @@ def test_bad_baselines_are_refused(override):
 
 def test_tiny_run_with_baselines_has_the_paper_rows(tmp_path):
     out = subprocess.run(
-        [sys.executable, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={tmp_path}",
+        [sys.executable, str(TRAIN), f"hydra.run.dir={tmp_path}",
          *TINY, "baselines=greedy", "logger=tensorboard"],
         capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -92,7 +89,7 @@ def test_table1_small_must_shows(tmp_path):
     for it (D-ICRL imitates as well as C-ICRL, with fewer false constraints than either
     greedy baseline, and almost never violates; the nominal experts almost always do)."""
     out = subprocess.run(
-        [sys.executable, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={tmp_path}",
+        [sys.executable, str(TRAIN), f"hydra.run.dir={tmp_path}",
          "experiment=table1_small"],
         capture_output=True, text=True, cwd=ROOT, timeout=2300)
     assert out.returncode == 0, out.stderr[-3000:]

@@ -14,15 +14,15 @@ import time
 from pathlib import Path
 
 import pytest
+import tiny_train
 import torch
 import torch.distributed as dist
 
 ROOT = Path(__file__).resolve().parents[1]
 TORCHRUN = Path(sys.executable).parent / "torchrun"
-# tests/test_configs.py's TINY, with 2 learners and 2 outer iterations
-TINY = ["env.layout.n_experts=1", "env.model.horizon=8", "solver.compile=false",
-        "algo.outer_iterations=2", "algo.inner_steps=2", "eval_episodes=10",
-        "n_demonstrations=10", "split=[4,6]", "logger=none"]
+# the shared tiny job (tests/tiny_train.py) with 2 outer iterations
+TINY = ["algo.outer_iterations=2" if o.startswith("algo.outer_iterations=") else o
+        for o in tiny_train.TINY]
 
 pytestmark = pytest.mark.skipif(not (dist.is_available() and dist.is_gloo_available()),
                                 reason="torch.distributed with gloo is not available")
@@ -30,7 +30,7 @@ pytestmark = pytest.mark.skipif(not (dist.is_available() and dist.is_gloo_availa
 
 def run_train(run_dir, *extra, env=None, launcher=(sys.executable,)):
     return subprocess.run(
-        [*launcher, str(ROOT / "experiments" / "train.py"), f"hydra.run.dir={run_dir}",
+        [*launcher, str(tiny_train.TRAIN), f"hydra.run.dir={run_dir}",
          *TINY, *extra], capture_output=True, text=True, cwd=ROOT, timeout=300,
         env={**os.environ, **(env or {})})
 
@@ -237,7 +237,7 @@ def test_two_torchrun_nodes_each_holding_only_its_own_file(tmp_path, simulated):
         for node in (1, 0):
             cmd = [str(TORCHRUN), "--nnodes", "2", "--nproc_per_node", "1",
                    "--node_rank", str(rank_of_node[node]), "--master_addr", "127.0.0.1",
-                   "--master_port", str(port), str(ROOT / "experiments" / "train.py"),
+                   "--master_port", str(port), str(tiny_train.TRAIN),
                    f"hydra.run.dir={run_dir}", *TINY, "comm=distributed",
                    "algo.run_c_icrl=false",
                    "shard_files=[local/learner0.npz,local/learner1.npz]"]
