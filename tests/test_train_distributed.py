@@ -114,16 +114,17 @@ def test_torchrun_world_size_must_match_the_split(tmp_path):
 
 
 def test_a_dead_learner_fails_the_run_and_resume_finishes_it(tmp_path, simulated):
-    t0 = time.monotonic()
     crashed = run_train(tmp_path, "comm=distributed",
                         env={"DICRL_CRASH_AFTER": "D-ICRL@rank1:1"})  # SIGKILL after it. 1
-    elapsed = time.monotonic() - t0
+    # From learner 1's death (its last checkpoint is written right before it) to the end
+    # of the run: start-up is left out, which on a loaded machine alone can take a minute.
+    elapsed = time.time() - (tmp_path / "checkpoint_rank1.pt").stat().st_mtime
     assert crashed.returncode == 1, crashed.stderr[-3000:]
     err = crashed.stderr
     assert "rank 1: exited with code -9" in err
     assert "rank 0: PeerFailureError: Learner 0 of 2" in err  # no waiting for the dead peer
     assert f"resume=true hydra.run.dir={tmp_path}" in err
-    assert elapsed < 60, f"took {elapsed:.0f} s"
+    assert elapsed < 60, f"the run ended {elapsed:.0f} s after learner 1 died"
     assert not (tmp_path / "results.json").exists()
     for r in (0, 1):
         saved = torch.load(tmp_path / f"checkpoint_rank{r}.pt", weights_only=True)
