@@ -5,6 +5,7 @@ into a checkpointed stop (:class:`StopOnSignal`) or an immediate one
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import os
@@ -206,6 +207,20 @@ class StopOnSignal:
         raise Interrupted(signum)
 
 
+@contextlib.contextmanager
+def stoppable(stop: StopOnSignal | None):
+    """Inside, a first signal caught by ``stop`` (if any) only sets ``stop.signum``: the
+    work in progress checks it after its current unit and saves before raising."""
+    if stop is None:
+        yield
+        return
+    stop.training = True
+    try:
+        yield
+    finally:
+        stop.training = False
+
+
 def interrupt_on_signals() -> None:
     """SIGINT/SIGTERM raise :class:`Interrupted` at once (learner processes of a
     distributed run). A learner cannot finish its outer iteration alone: the others
@@ -250,8 +265,8 @@ def merge(source: Path, into: Path, names: list[str]) -> dict[str, int]:
                              f"); train it again with the run's overrides.")
         n, have = src[name]["outer_iteration"], dst.get(name, {}).get("outer_iteration", -1)
         if have >= n:
-            raise ValueError(f"{into} already holds {name} after outer iteration {have}, and "
-                             f"{source} only after {n}; nothing to merge.")
+            raise ValueError(f"{into} already holds {name} {progress_of(dst[name])}, and "
+                             f"{source} only {progress_of(src[name])}; nothing to merge.")
         for key in (name, f"{name}:previous"):
             if key in src:
                 dst[key] = src[key]

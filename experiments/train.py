@@ -55,6 +55,7 @@ from checkpoints import (
     StopOnSignal,
     interrupt_on_signals,
     progress_of,
+    stoppable,
     training_config,
 )
 from common import (
@@ -82,7 +83,11 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dicrl_torch.algos.dicrl import DICRL, NonFiniteError
-from dicrl_torch.algos.greedy import GreedyConstraintInference, GreedyResult
+from dicrl_torch.algos.greedy import (
+    GreedyConstraintInference,
+    GreedyResult,
+    ResumeMismatchError,
+)
 from dicrl_torch.comm import SimulatedCommunicator
 from dicrl_torch.comm.distributed import (
     ConfigMismatchError,
@@ -349,19 +354,14 @@ def run_greedy(name: str, greedy: GreedyConstraintInference, ckpt: Checkpoints,
             stop.training = False
             raise Interrupted(stop.signum, f"{name} saved {progress_of(ckpt.saved[name])}")
 
-    if stop is not None:
-        stop.training = True  # a first signal lets the current candidate finish
     try:
-        return greedy.run(resume_from=saved[0]["greedy"] if saved else None, on_step=save)
-    except ValueError as e:
-        if not saved:
-            raise
-        raise ValueError(f"{e} (The progress is {name} in {ckpt.path}; resume with the "
-                         f"interrupted run's baselines.epsilon and "
-                         f"baselines.max_constraints.)") from e
-    finally:
-        if stop is not None:
-            stop.training = False
+        with stoppable(stop):  # a first signal lets the current candidate finish
+            return greedy.run(resume_from=saved[0]["greedy"] if saved else None,
+                              on_step=save)
+    except ResumeMismatchError as e:
+        raise ResumeMismatchError(f"{e} (The progress is {name} in {ckpt.path}; resume with "
+                                  f"the interrupted run's baselines.epsilon and "
+                                  f"baselines.max_constraints.)") from e
 
 
 def run_baselines(cfg, p: Problem, logger, out: Path, ckpt: Checkpoints,
@@ -503,13 +503,8 @@ def train(name: str, trainer: DICRL, ckpt: Checkpoints, logger, run_of: RunOf, c
             raise Interrupted(stop.signum, f"{name} saved after outer iteration "
                                            f"{t.state.outer_iteration}")
 
-    if stop is not None:
-        stop.training = True
-    try:
+    with stoppable(stop):
         trainer.train(a.outer_iterations, callback=after_outer)
-    finally:
-        if stop is not None:
-            stop.training = False
     ckpt.save(name, trainer)
 
 

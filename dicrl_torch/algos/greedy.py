@@ -237,6 +237,10 @@ class GreedyStep:
     seconds: float
 
 
+class ResumeMismatchError(ValueError):
+    """A saved greedy progress record cannot be continued by this greedy."""
+
+
 @dataclass
 class GreedyResult:
     """Output of :meth:`GreedyLoop.run`.
@@ -322,8 +326,8 @@ class GreedyLoop:
                 tried) plus ``finished`` grows by one at each call.
 
         Raises:
-            ValueError: ``resume_from`` belongs to another problem or other settings, or
-                the model cannot be resumed.
+            ResumeMismatchError: ``resume_from`` belongs to another problem or other
+                settings, or the model cannot be resumed.
         """
         t_start = time.perf_counter()
         if resume_from is None:
@@ -339,7 +343,7 @@ class GreedyLoop:
         if resume_from is None:
             lls = [ll]
         elif not math.isclose(ll, lls[-1], rel_tol=1e-9, abs_tol=1e-9):
-            raise ValueError(
+            raise ResumeMismatchError(
                 f"The saved {self.label} progress does not belong to this problem: its "
                 f"constraint set has mean log-likelihood {lls[-1]:.9g} there and {ll:.9g} "
                 f"here (another reward, solver or set of demonstrations). Start the "
@@ -417,23 +421,27 @@ class GreedyLoop:
 
     def _restore(self, record: dict) -> tuple:
         if not self.resumable:
-            raise ValueError(f"{self.label} cannot be resumed: its model is more than the "
-                             f"constraint set (a warm-started policy). Run it from the start.")
+            raise ResumeMismatchError(
+                f"{self.label} cannot be resumed: its model is more than the constraint set "
+                f"(a warm-started policy). Run it from the start.")
         missing = sorted({"candidates", "selected", "infeasible", "added", "log_likelihood",
                           "improvement", "steps", "stop_reason", "seconds"}
                          - set(record))
         if missing:
-            raise ValueError(f"The saved {self.label} progress lacks {missing}; it was not "
-                             f"written by GreedyLoop.run. Start the greedy over.")
+            raise ResumeMismatchError(
+                f"The saved {self.label} progress lacks {missing}; it was not written by "
+                f"GreedyLoop.run. Start the greedy over.")
         theirs = {k: record.get(k) for k in self._settings()}
         if theirs != self._settings():
-            raise ValueError(f"The saved {self.label} progress was made with {theirs}, this "
-                             f"run has {self._settings()}. Continue it with its settings, or "
-                             f"start the greedy over.")
+            raise ResumeMismatchError(
+                f"The saved {self.label} progress was made with {theirs}, this run has "
+                f"{self._settings()}. Continue it with its settings, or start the greedy "
+                f"over.")
         if not torch.equal(torch.as_tensor(record["candidates"]), self.candidates):
-            raise ValueError(f"The saved {self.label} progress has other candidate "
-                             f"constraints than this problem (another cost basis or other "
-                             f"demonstrations). Start the greedy over.")
+            raise ResumeMismatchError(
+                f"The saved {self.label} progress has other candidate constraints than this "
+                f"problem (another cost basis or other demonstrations). Start the greedy "
+                f"over.")
         steps = [GreedyStep(**s) for s in record["steps"]]
         return (record["selected"].clone(), record["infeasible"].clone(), list(record["added"]),
                 list(record["log_likelihood"]), list(record["improvement"]), steps,
