@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import hashlib
+import json
 import os
 import signal
 import sys
@@ -60,6 +61,20 @@ def config_diff(a: dict, b: dict, a_is: str, b_is: str) -> str:
                      for k in keys[:6]) + ("; ..." if len(keys) > 6 else "")
 
 
+# A trained method's evaluated table rows are saved as "<method>:evaluated": evaluating
+# prunes each learner's constraint set, one solve per candidate (minutes per learner on
+# the 3-expert problem), and a run stopped after that point must not do it again.
+EVALUATED = ":evaluated"
+
+
+def evaluation_settings(cfg) -> dict[str, Any]:
+    """What a trained method's rows depend on besides its state and the training config
+    (which holds the rollouts' seed)."""
+    a = cfg.algo
+    return {"threshold": float(a.threshold), "eval_episodes": int(cfg.eval_episodes),
+            "prune_min_gain": None if a.prune_min_gain is None else float(a.prune_min_gain)}
+
+
 def progress_of(state: dict) -> str:
     """How far a saved state is: a trainer's outer iterations, a greedy baseline's
     candidates (its ``greedy`` progress record, ``dicrl_torch.algos.greedy``)."""
@@ -98,7 +113,8 @@ class Checkpoints:
             self.saved = self._load(path)
             for state in self.saved.values():
                 self._check_config(state.get("run_config"))
-            latest = {k: v for k, v in self.saved.items() if not k.endswith(":previous")}
+            latest = {k: v for k, v in self.saved.items()
+                      if not k.endswith((":previous", EVALUATED))}
             done = {k: v["outer_iteration"] for k, v in latest.items() if "greedy" not in v}
             greedy = "".join(f"; {k} {progress_of(v)}" for k, v in latest.items() if "greedy" in v)
             print(f"resuming from {path} (outer iterations done: {done}{greedy})")
@@ -135,6 +151,27 @@ class Checkpoints:
     def states(self, name: str) -> list[dict]:
         """The saved states of ``name``, newest first."""
         return [self.saved[k] for k in (name, f"{name}:previous") if k in self.saved]
+
+    def evaluated_rows(self, name: str, outer_iteration: int,
+                       settings: dict[str, Any]) -> list[dict] | None:
+        """The rows of ``name`` saved by :meth:`save_rows` after ``outer_iteration`` under
+        the evaluation ``settings``; None if there are none (or they are of another state
+        or settings)."""
+        saved = self.saved.get(name + EVALUATED)
+        if (saved is None or saved["outer_iteration"] != outer_iteration
+                or saved["evaluation"] != settings):
+            return None
+        return copy.deepcopy(saved["rows"])
+
+    def save_rows(self, name: str, outer_iteration: int, settings: dict[str, Any],
+                  rows: list[dict]) -> None:
+        """Save the table ``rows`` of ``name``'s local learners, evaluated after
+        ``outer_iteration`` under ``settings`` (:func:`evaluation_settings`)."""
+        # Through JSON: plain Python values, which torch.load(weights_only=True) reads back,
+        # and exactly what results.json holds.
+        plain = json.loads(json.dumps(rows))
+        self.save_state(name + EVALUATED, {"outer_iteration": outer_iteration,
+                                           "evaluation": settings, "rows": plain})
 
     def save(self, name: str, trainer: DICRL) -> None:
         self.save_state(name, trainer.state_dict())
@@ -267,9 +304,11 @@ def merge(source: Path, into: Path, names: list[str]) -> dict[str, int]:
         if have >= n:
             raise ValueError(f"{into} already holds {name} {progress_of(dst[name])}, and "
                              f"{source} only {progress_of(src[name])}; nothing to merge.")
-        for key in (name, f"{name}:previous"):
+        for key in (name, f"{name}:previous", name + EVALUATED):
             if key in src:
                 dst[key] = src[key]
+            else:  # of the state replaced
+                dst.pop(key, None)
         copied[name] = n
     atomic_write(into, lambda tmp: torch.save(dst, tmp))
     return copied

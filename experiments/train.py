@@ -53,6 +53,7 @@ from checkpoints import (
     Checkpoints,
     Interrupted,
     StopOnSignal,
+    evaluation_settings,
     interrupt_on_signals,
     progress_of,
     stoppable,
@@ -300,16 +301,27 @@ def constraint_map(layout, names: list[str], title: str) -> np.ndarray:
 
 
 def evaluate_learners(name: str, trainer: DICRL, p: Problem, cfg, logger, run_of: RunOf,
-                      out: Path, progress: bool = True) -> list[dict]:
-    """Rows, constraint maps and final TensorBoard values of the trainer's local learners."""
+                      out: Path, ckpt: Checkpoints, progress: bool = True) -> list[dict]:
+    """Rows, constraint maps and final TensorBoard values of the trainer's local learners.
+
+    The rows are checkpointed; a resumed run takes them from there instead of pruning
+    and rolling out again (the trainer's ω_c then stays unpruned).
+    """
     import matplotlib.image
 
     a = cfg.algo
+    settings, n = evaluation_settings(cfg), trainer.state.outer_iteration
+    saved = ckpt.evaluated_rows(name, n, settings)
+    if saved is not None:
+        print(f"{name}: rows evaluated after outer iteration {n} taken from {ckpt.path}")
     rows = []
     for i, v in enumerate(trainer.local):
-        row = learner_row(trainer, i, p.ctx, a.threshold, a.prune_min_gain, progress)
-        row["constraints"] = constraint_names(p.cost_basis, trainer.state.cost_weights[i],
-                                              a.threshold)
+        if saved is not None:
+            row = saved[i]
+        else:
+            row = learner_row(trainer, i, p.ctx, a.threshold, a.prune_min_gain, progress)
+            row["constraints"] = constraint_names(p.cost_basis, trainer.state.cost_weights[i],
+                                                  a.threshold)
         img = constraint_map(p.layout, row["constraints"],
                              f"{name} learner {v + 1}: learned cell constraints (x)")
         logger.image(run_of(v), "eval/constraint_map", img, a.outer_iterations)
@@ -317,6 +329,8 @@ def evaluate_learners(name: str, trainer: DICRL, p: Problem, cfg, logger, run_of
         logger.scalar(run_of(v), "eval/CR", row["CR_mean"], a.outer_iterations)
         logger.scalar(run_of(v), "eval/CVR", row["CVR"], a.outer_iterations)
         rows.append(row)
+    if saved is None:
+        ckpt.save_rows(name, n, settings, rows)
     return rows
 
 
@@ -531,7 +545,7 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
         train("C-ICRL", c, ckpt, logger, lambda v: "c_icrl", cfg, p.ctx, log_network=False,
               stop=stop)
         methods["C-ICRL"] = {"D": "×", "NATR": "✓", "learners": evaluate_learners(
-            "C-ICRL", c, p, cfg, logger, lambda v: "c_icrl", out)}
+            "C-ICRL", c, p, cfg, logger, lambda v: "c_icrl", out, ckpt)}
         histories["C-ICRL"] = c.history
     baseline_rows, baseline_histories = run_baselines(cfg, p, logger, out, ckpt, stop)
     methods.update(baseline_rows)  # before the experts: the paper's row order
@@ -628,7 +642,7 @@ def run_simulated(cfg, out: Path, t_start: float) -> None:
             train("D-ICRL", trainer, ckpt, logger, run_of, cfg, p.ctx, log_network=True,
                   stop=stop)
             gap = trainer.disagreement()  # of the trained ω_c: pruning below is local
-            rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out)
+            rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out, ckpt)
             d_icrl = {"learners": rows, "history": trainer.history, "disagreement": gap}
         finish(cfg, out, p, d_icrl, logger, ckpt, t_start, build(cfg.comm, n_learners=1), stop)
 
@@ -687,7 +701,7 @@ def run_learner(comm: DistributedCommunicator, cfg, out: Path, p: Problem,
     run_of = lambda v: f"learner{v}"  # noqa: E731
     train("D-ICRL", trainer, ckpt, logger, run_of, cfg, p.ctx, log_network=rank == 0)
     gap = trainer.disagreement()  # of the trained ω_c, as in the simulated run
-    rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out,
+    rows = evaluate_learners("D-ICRL", trainer, p, cfg, logger, run_of, out, ckpt,
                              progress=rank == 0)
     logger.close()
     write_json(out / "learner_rows" / f"rank{rank}.json", {

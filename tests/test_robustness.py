@@ -304,7 +304,28 @@ def test_c_icrl_trained_in_its_own_job_merges_into_the_run(tmp_path, reference):
     resumed = run_train(run, "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "{'D-ICRL': 3, 'C-ICRL': 3}" in resumed.stdout
+    # its own job's evaluated rows came along: not pruned and rolled out again
+    assert "C-ICRL: rows evaluated after outer iteration 3 taken from" in resumed.stdout
     assert comparable(run) == comparable(reference)
+
+
+def test_a_run_stopped_after_evaluating_resumes_without_evaluating_again(tmp_path, reference):
+    # killed right after D-ICRL's rows were checkpointed, before C-ICRL trains
+    crashed = run_train(tmp_path, env={"DICRL_CRASH_AFTER": "D-ICRL:evaluated:3"})
+    assert crashed.returncode == -9, crashed.stderr[-2000:]
+    saved = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    expected = comparable(reference)["methods"]["D-ICRL"]["learners"]
+    assert saved["D-ICRL:evaluated"]["rows"] == expected
+    resumed = run_train(tmp_path, "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "D-ICRL: rows evaluated after outer iteration 3 taken from" in resumed.stdout
+    assert "outer iterations done: {'D-ICRL': 3})" in resumed.stdout  # rows: no trainer
+    assert comparable(tmp_path) == comparable(reference)
+    # rows of other evaluation settings are not taken: they are evaluated anew
+    other = run_train(tmp_path, "resume=true", "eval_episodes=12")
+    assert other.returncode == 0, other.stderr[-3000:]
+    assert "rows evaluated after" not in other.stdout
+    assert comparable(tmp_path)["methods"]["D-ICRL"]["learners"] != expected
 
 
 # ---------------------------------------------------------------------- greedy baselines

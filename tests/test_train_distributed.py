@@ -92,7 +92,10 @@ def test_spawned_learners_reproduce_the_simulated_run(spawned, simulated):
         saved = torch.load(spawned / f"checkpoint_rank{r}.pt", weights_only=True)
         assert saved["D-ICRL"]["outer_iteration"] == 2
         assert saved["D-ICRL:previous"]["outer_iteration"] == 1
-    assert set(torch.load(spawned / "checkpoint.pt", weights_only=True)) == {"C-ICRL"}
+        # each learner's own row, as it wrote it for rank 0 to merge
+        assert saved["D-ICRL:evaluated"]["rows"] == [part["row"]]
+    assert set(torch.load(spawned / "checkpoint.pt", weights_only=True)) == {
+        "C-ICRL", "C-ICRL:evaluated"}
     cfg = json.loads((spawned / "results.json").read_text())["config"]["comm"]
     assert cfg["_target_"].endswith("DistributedCommunicator") and cfg["backend"] == "gloo"
 
