@@ -86,13 +86,18 @@ def state_visitation(states, n_cells: int, *, gamma: float | None = None) -> np.
                        minlength=n_cells) / (m * n)
 
 
-def constraint_cells(layout: GridLayout, names: Iterable[str]) -> list[int]:
+def constraint_cells(layout: GridLayout, names: Iterable[str],
+                     region_cells: Mapping[str, Iterable[int]] | None = None) -> list[int]:
     """Cell indices of the cell-constraint features among ``names`` (``cell(x,y)``, or
-    ``expert<i>/cell(x,y)`` in a per-expert basis); action and collision constraints,
-    and features of a basis without cells, have no cell and are left out."""
+    ``expert<i>/cell(x,y)`` in a per-expert basis), and every cell of a region feature
+    named in ``region_cells`` (a cost basis' ``region_cells``); action and collision
+    constraints, and features of a basis without cells, have no cell and are left out."""
     cells = []
+    region_cells = region_cells or {}
     for name in names:
-        if match := _CELL_NAME.search(name):
+        if name in region_cells:
+            cells.extend(region_cells[name])
+        elif match := _CELL_NAME.search(name):
             x, y = int(match[1]), int(match[2])
             if not (0 <= x < layout.size and 0 <= y < layout.size):
                 raise ValueError(f"constraint {name!r} lies outside the {layout.size}x"

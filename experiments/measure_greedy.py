@@ -3,6 +3,8 @@
     .venv/bin/python experiments/measure_greedy.py                     # 1 expert, p = 1.0 and 0.8
     .venv/bin/python experiments/measure_greedy.py --expert-temperature 1.0   # soft experts
     .venv/bin/python experiments/measure_greedy.py --experts 2 --one-step     # time one step
+    .venv/bin/python experiments/measure_greedy.py --cost regions --expert-temperature 1.0
+                                          # Scobee's own setting: wall colours, soft experts
 
 For each dynamics (deterministic, 20% slip) and each model (ME, MCE): 100 demonstrations
 of the optimal experts (``expert_solution``, seed ``--seed``), the greedy with the true
@@ -24,19 +26,25 @@ import torch
 from dicrl_torch.algos.greedy import GreedyConstraintInference, reachable_constraints
 from dicrl_torch.demos.experts import expert_solution, sample_trajectories
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel
-from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
+from dicrl_torch.features.bases import (
+    GoalClosenessRewardBasis,
+    RegionIndicatorCostBasis,
+    SharedIndicatorCostBasis,
+)
 from dicrl_torch.metrics import false_negative_rate, false_positive_rate, rollout_true_cmg
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
+COST_BASES = {"shared": SharedIndicatorCostBasis, "regions": RegionIndicatorCostBasis}
+
 
 def build(n_experts: int, p_success: float, seed: int, expert_temperature: float,
-          n_demos: int):
+          n_demos: int, cost: str = "shared"):
     layout = GridLayout.scobee(n_experts)
     model = TabularGridModel(layout=layout, horizon=40, gamma=0.99, p_success=p_success)
     # float64 is free on one expert (729 pairs); float32 on two (531,441 pairs).
     dtype = torch.float64 if n_experts == 1 else torch.float32
     solver = FactoredSoftBellman(model=model, dtype=dtype)
-    rb, cb = GoalClosenessRewardBasis(model), SharedIndicatorCostBasis(model)
+    rb, cb = GoalClosenessRewardBasis(model), COST_BASES[cost](model)
     w_true = rb.true_weights()
     exp_solver = FactoredSoftBellman(model=model, dtype=torch.float64)
     experts = expert_solution(solver=exp_solver, reward_features=rb(), reward_weights=w_true,
@@ -47,7 +55,7 @@ def build(n_experts: int, p_success: float, seed: int, expert_temperature: float
 
 def run_one(args, p_success: float, kind: str) -> dict:
     layout, model, solver, rb, cb, reward, demos, experts = build(
-        args.experts, p_success, args.seed, args.expert_temperature, args.demos)
+        args.experts, p_success, args.seed, args.expert_temperature, args.demos, args.cost)
     true = cb.true_constraints()
     reach = reachable_constraints(solver=solver, reward=reward, cost_basis=cb, true_mask=true)
     greedy = GreedyConstraintInference(solver=solver, reward=reward, cost_basis=cb,
@@ -80,7 +88,7 @@ def one_step(args) -> dict:
     """Wall time of one greedy step (solve + accruals + log-likelihood) per model."""
     out = {}
     layout, model, solver, rb, cb, reward, demos, _ = build(
-        args.experts, 0.8, args.seed, args.expert_temperature, args.demos)
+        args.experts, 0.8, args.seed, args.expert_temperature, args.demos, args.cost)
     for kind in ("me", "mce"):
         g = GreedyConstraintInference(solver=solver, reward=reward, cost_basis=cb,
                                       demonstrations=demos, model=kind, max_constraints=1)
@@ -108,6 +116,9 @@ def main() -> None:
     ap.add_argument("--epsilon", type=float, default=None,
                     help="nats per trajectory (default: ln(m)/(2m))")
     ap.add_argument("--expert-temperature", type=float, default=0.0)
+    ap.add_argument("--cost", choices=sorted(COST_BASES), default="shared",
+                    help="candidate features: shared cells/actions/collision, or those "
+                         "plus Scobee's wall colours (regions)")
     ap.add_argument("--one-step", action="store_true", help="only time one greedy step")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()

@@ -291,13 +291,13 @@ def constraint_names(cost_basis, cost_weights, threshold: float) -> list[str]:
             if w >= threshold]
 
 
-def constraint_map(layout, names: list[str], title: str) -> np.ndarray:
-    """PNG-ready map of the learned cell constraints ``names`` (red crosses) over the
-    true obstacles (bright)."""
-    heat = np.zeros(layout.n_cells)
-    heat[obstacle_cells(layout)] = 1.0
-    return render_grid(layout, heat=heat, constraint_cells=constraint_cells(layout, names),
-                       title=title)
+def constraint_map(p: Problem, names: list[str], title: str) -> np.ndarray:
+    """PNG-ready map of the learned cell (and region) constraints ``names`` (red crosses)
+    over the true obstacles (bright)."""
+    heat = np.zeros(p.layout.n_cells)
+    heat[obstacle_cells(p.layout)] = 1.0
+    cells = constraint_cells(p.layout, names, p.cost_basis.region_cells)
+    return render_grid(p.layout, heat=heat, constraint_cells=cells, title=title)
 
 
 def evaluate_learners(name: str, trainer: DICRL, p: Problem, cfg, logger, run_of: RunOf,
@@ -322,7 +322,7 @@ def evaluate_learners(name: str, trainer: DICRL, p: Problem, cfg, logger, run_of
             row = learner_row(trainer, i, p.ctx, a.threshold, a.prune_min_gain, progress)
             row["constraints"] = constraint_names(p.cost_basis, trainer.state.cost_weights[i],
                                                   a.threshold)
-        img = constraint_map(p.layout, row["constraints"],
+        img = constraint_map(p, row["constraints"],
                              f"{name} learner {v + 1}: learned cell constraints (x)")
         logger.image(run_of(v), "eval/constraint_map", img, a.outer_iterations)
         matplotlib.image.imsave(out / f"constraints_{name}_{v + 1}.png", img)
@@ -412,7 +412,7 @@ def run_baselines(cfg, p: Problem, logger, out: Path, ckpt: Checkpoints,
                    FNR=false_negative_rate(res.constraint_mask, p.ctx["true"]),
                    RFD=None, SR=None, n_learned=k, stop_reason=res.stop_reason)
         row["constraints"] = constraint_names(p.cost_basis, res.constraint_mask.double(), 0.5)
-        img = constraint_map(p.layout, row["constraints"], f"{name}: learned cell constraints (x)")
+        img = constraint_map(p, row["constraints"], f"{name}: learned cell constraints (x)")
         logger.image(run, "eval/constraint_map", img, k)
         matplotlib.image.imsave(out / f"constraints_{name}.png", img)
         logger.scalar(run, "eval/CR", row["CR_mean"], k)
@@ -596,11 +596,13 @@ def write_figures(cfg, out: Path, p: Problem, methods: dict, histories: dict,
         for v, row in enumerate(rows):
             who = f"{name} learner {v + 1}" if len(rows) > 1 else name
             # Action and collision constraints have no cell to cross: named in the title.
-            off_grid = [n for n in row["constraints"] if not constraint_cells(p.layout, [n])]
+            off_grid = [n for n in row["constraints"]
+                        if not constraint_cells(p.layout, [n], p.cost_basis.region_cells)]
             listed = ", ".join(off_grid[:4]) + (f" and {len(off_grid) - 4} more"
                                                 if len(off_grid) > 4 else "")
             panels.append(visitation_heatmap(
-                p.layout, visits, constraint_cells=constraint_cells(p.layout, row["constraints"]),
+                p.layout, visits, constraint_cells=constraint_cells(
+                    p.layout, row["constraints"], p.cost_basis.region_cells),
                 title=f"Fig. 2b: {who}, learned constraints (x)\n"
                       f"not on a cell: {listed or 'none'}\n"
                       f"FPR {row['FPR']:.2f}, FNR {row['FNR']:.2f} (after pruning)\n{colour}"))

@@ -7,12 +7,13 @@ import pytest
 import torch
 from torch import nn
 
-from dicrl_torch.envs.grid import ACTION_NAMES, GridLayout, TabularGridModel
+from dicrl_torch.envs.grid import ACTION_NAMES, SCOBEE_REGIONS, GridLayout, TabularGridModel
 from dicrl_torch.features.bases import (
     FrozenModuleBasis,
     GoalClosenessRewardBasis,
     LinearHead,
     PerExpertIndicatorCostBasis,
+    RegionIndicatorCostBasis,
     SharedIndicatorCostBasis,
     random_mlp,
 )
@@ -57,6 +58,65 @@ def test_indicator_semantics_on_joint_pairs():
     per = PerExpertIndicatorCostBasis(model)()
     phi_p = per.at(cells, acts, model.n_cells)
     assert phi_p[0, 40] == 1.0 and phi_p[0, 90 + 40] == 1.0
+
+
+def test_region_basis_adds_one_column_per_region_to_the_shared_basis(model):
+    shared_basis, regions = SharedIndicatorCostBasis(model), RegionIndicatorCostBasis(model)
+    shared, f = shared_basis(), regions()
+    assert regions.names == shared_basis.names[:90] + ["region blue", "region green",
+                                                       "collision"]
+    # Cells, actions and collision are the shared basis' columns.
+    assert torch.equal(f.local[..., :90], shared.local[..., :90])
+    assert torch.equal(f.joint, shared.joint) and f.joint_columns.tolist() == [92]
+    # A region's column is the sum of its cells' columns: 1 for each expert standing in it.
+    for r, (_, cells) in enumerate(SCOBEE_REGIONS):
+        idx = [model.layout.cell(c) for c in cells]
+        want = shared.local[..., idx].sum(-1)
+        assert torch.equal(f.local[..., 90 + r], want)
+    two = TabularGridModel(layout=GridLayout.scobee(2), horizon=5)
+    phi = RegionIndicatorCostBasis(two)().at(torch.tensor([[4, 13]]),
+                                             torch.tensor([[0, 0]]), two.n_cells)
+    assert phi[0, 90] == 2.0 and phi[0, 91] == 0.0  # both experts on the blue wall
+
+
+def test_region_basis_ground_truth_follows_scobee():
+    model = TabularGridModel(layout=GridLayout.scobee(2), horizon=5)
+    basis = RegionIndicatorCostBasis(model)
+    true = [n for n, c in zip(basis.names, basis.true_constraints(), strict=True) if c]
+    # The walls are constrained through their colours, the chevron cell by cell.
+    assert true == ["cell(2,3)", "cell(6,3)", "cell(3,4)", "cell(5,4)", "cell(4,5)",
+                    "action NE", "action NW", "region blue", "region green", "collision"]
+    # A region that holds a free cell is no constraint, and its obstacles keep theirs.
+    mixed = RegionIndicatorCostBasis(model, regions={"top": [(4, 2), (4, 3)]})
+    names = [n for n, c in zip(mixed.names, mixed.true_constraints(), strict=True) if c]
+    assert "region top" not in names and "cell(4,2)" in names
+    assert mixed.region_cells == {"region top": (22, 31)}
+
+
+@pytest.mark.parametrize("regions, match", [
+    (5, "must map names to lists of"),
+    ([(4, 0)], "region names must be distinct non-empty strings"),
+    ({"a": []}, "region 'a' has no cells"),
+    ({"a": [(4, 9)]}, r"cells \[\(4, 9\)\] lie outside the 9x9 grid"),
+    ({"a": [4, 0]}, r"must be \(x, y\) pairs"),
+])
+def test_region_basis_refuses_bad_regions(regions, match):
+    model = TabularGridModel(layout=GridLayout.scobee(1), horizon=3)
+    with pytest.raises(ValueError, match=match):
+        RegionIndicatorCostBasis(model, regions=regions)
+    with pytest.raises(ValueError, match=match):
+        GridLayout(size=9, starts=((0, 0),), goals=((8, 8),), regions=regions)
+
+
+def test_region_basis_without_regions_is_the_shared_basis():
+    model = TabularGridModel(layout=GridLayout.open_grid(5, 2), horizon=3)
+    basis, shared = RegionIndicatorCostBasis(model), SharedIndicatorCostBasis(model)
+    assert basis.names == shared.names and basis.region_cells == {}
+    assert torch.equal(basis().local, shared().local)
+    assert torch.equal(basis.true_constraints(), shared.true_constraints())
+    with pytest.raises(ValueError, match="distinct"):
+        GridLayout(size=5, starts=((0, 0),), goals=((4, 4),),
+                   regions=(("a", ((1, 1),)), ("a", ((2, 2),))))
 
 
 def test_goal_closeness_reward(model):

@@ -116,6 +116,10 @@ def test_constraint_cells_of_feature_names():
     assert constraint_cells(LAYOUT, names) == [LAYOUT.cell((1, 0)), LAYOUT.cell((0, 2))]
     with pytest.raises(ValueError, match="outside the 5x5 grid"):
         constraint_cells(LAYOUT, ["cell(7,0)"])
+    # A region feature stands for all its cells (RegionIndicatorCostBasis.region_cells).
+    assert constraint_cells(LAYOUT, ["region wall", "cell(0,0)"],
+                            {"region wall": (7, 12)}) == [0, 7, 12]
+    assert constraint_cells(LAYOUT, ["region wall"]) == []
 
 
 def test_side_by_side_pads_with_white():

@@ -36,6 +36,7 @@ from dicrl_torch.features.bases import (
     FactoredFeatures,
     GoalClosenessRewardBasis,
     PerExpertIndicatorCostBasis,
+    RegionIndicatorCostBasis,
     SharedIndicatorCostBasis,
 )
 from dicrl_torch.metrics import false_positive_rate, rollout_true_cmg
@@ -427,6 +428,38 @@ def test_scobee_single_expert_prefers_a_false_wall_the_likelihood_cannot_tell_ap
         assert "cell(4,8)" not in names
         assert res.log_likelihood[-1] > g.mean_log_likelihood(g.solve(true)[0]) + 1.0
         assert false_positive_rate(res.constraint_mask, true) > 0.5
+
+
+def test_scobee_wall_colours_let_the_greedy_learn_the_wall_as_one_feature():
+    """Scobee's own setting: the wall halves are one feature each (his colours) and the
+    100 demonstrations are sampled from the maximum-entropy model of the true CMG
+    (temperature 1), 20% slip. The green wall's feature gathers the evidence of its
+    three cells and is learned right after NE; every reachable true constraint is
+    recovered, and the false ones are cells of the dead-end pocket that no
+    demonstration happened to enter."""
+    layout = GridLayout.scobee(1)
+    model = TabularGridModel(layout=layout, horizon=40, gamma=0.99, p_success=0.8)
+    solver = FactoredSoftBellman(model=model, dtype=torch.float64)
+    rb, cb = GoalClosenessRewardBasis(model), RegionIndicatorCostBasis(model)
+    reward = rb().weighted(rb.true_weights())
+    demos = sample_trajectories(expert_solution(solver=solver, reward_features=rb(),
+                                                reward_weights=rb.true_weights(),
+                                                temperature=1.0),
+                                100, np.random.default_rng(0))
+    true = cb.true_constraints()
+    reach = reachable_constraints(solver=solver, reward=reward, cost_basis=cb, true_mask=true)
+    assert [cb.names[j] for j in torch.nonzero(reach).flatten()] == [
+        "cell(4,5)", "action NE", "action NW", "region green"]
+    pocket = {f"cell({x},{y})" for x in (2, 3) for y in range(4, 9)}
+    for kind in ("me", "mce"):
+        res = GreedyConstraintInference(solver=solver, reward=reward, cost_basis=cb,
+                                        demonstrations=demos, model=kind).run()
+        names = res.added_names
+        assert names[:2] == ["action NE", "region green"]
+        assert bool((res.constraint_mask & reach).sum() == reach.sum())
+        false = {cb.names[j] for j in torch.nonzero(res.constraint_mask & ~true).flatten()}
+        assert false and false <= pocket, names
+        assert false_positive_rate(res.constraint_mask, true) <= 0.25
 
 
 def test_greedy_refuses_bad_input():

@@ -9,7 +9,7 @@ so a joint value tensor has shape ``[S1] * N`` (``S1 = size**2``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,6 +36,12 @@ SCOBEE_OBSTACLES: tuple[tuple[int, int], ...] = (
     (2, 3), (3, 4), (4, 5), (5, 4), (6, 3),
     (4, 0), (4, 1), (4, 2), (4, 6), (4, 7), (4, 8),
 )
+# Scobee & Sastry paint the two halves of that wall (their "blue" and "green" states); a
+# cost basis may give each colour one feature (RegionIndicatorCostBasis).
+SCOBEE_REGIONS: tuple[tuple[str, tuple[tuple[int, int], ...]], ...] = (
+    ("blue", ((4, 0), (4, 1), (4, 2))),
+    ("green", ((4, 6), (4, 7), (4, 8))),
+)
 SCOBEE_STARTS: tuple[tuple[int, int], ...] = ((0, 8), (8, 0), (0, 3))
 SCOBEE_GOALS: tuple[tuple[int, int], ...] = ((8, 8), (0, 0), (8, 3))
 SCOBEE_FORBIDDEN_ACTIONS: tuple[str, ...] = ("NE", "NW")
@@ -52,6 +58,9 @@ class GridLayout:
         obstacles: cells that are a state constraint for every expert.
         forbidden_actions: action names forbidden to every expert.
         collision_constraint: whether two experts in one cell is a violation.
+        regions: named groups of cells, ``((name, ((x, y), ...)), ...)``, such as
+            Scobee's wall colours. Not constraints in themselves: they are what a
+            region cost basis may give one feature each.
     """
 
     size: int
@@ -60,6 +69,7 @@ class GridLayout:
     obstacles: tuple[tuple[int, int], ...] = ()
     forbidden_actions: tuple[str, ...] = ()
     collision_constraint: bool = True
+    regions: tuple[tuple[str, tuple[tuple[int, int], ...]], ...] = ()
     name: str = field(default="custom", compare=False)
 
     def __post_init__(self) -> None:
@@ -83,6 +93,7 @@ class GridLayout:
             bad = set(cells) & set(self.obstacles)
             if bad:
                 raise ValueError(f"{what} {sorted(bad)} lie on obstacles; move them.")
+        check_regions(self.regions, self.size)
         unknown = set(self.forbidden_actions) - set(ACTION_NAMES)
         if unknown:
             raise ValueError(
@@ -100,6 +111,7 @@ class GridLayout:
             goals=SCOBEE_GOALS[:n_experts],
             obstacles=SCOBEE_OBSTACLES,
             forbidden_actions=SCOBEE_FORBIDDEN_ACTIONS,
+            regions=SCOBEE_REGIONS,
             name=f"scobee{n_experts}",
         )
 
@@ -168,6 +180,40 @@ class GridLayout:
         return np.stack(
             [np.maximum(abs(xs - gx), abs(ys - gy)) for gx, gy in self.goals]
         ).astype(np.int64)
+
+
+def check_regions(regions, size: int) -> dict[str, tuple[tuple[int, int], ...]]:
+    """``regions`` (a mapping ``name -> cells`` or ``(name, cells)`` pairs, each cell an
+    ``(x, y)`` pair) as a dict, checked: named, non-empty, inside the ``size x size``
+    grid.
+
+    Raises:
+        ValueError: naming the region and what is wrong with it.
+    """
+    pairs = regions.items() if isinstance(regions, Mapping) else regions
+    try:
+        pairs = [(name, cells) for name, cells in pairs]
+    except (TypeError, ValueError):
+        raise ValueError(f"regions must map names to lists of (x, y) cells, got {regions!r}; "
+                         f"e.g. {{'blue': [[4, 0], [4, 1]]}}.") from None
+    checked: dict[str, tuple[tuple[int, int], ...]] = {}
+    for name, cells in pairs:
+        if not isinstance(name, str) or not name or name in checked:
+            raise ValueError(f"region names must be distinct non-empty strings, got "
+                             f"{name!r}.")
+        try:
+            xy = tuple((int(x), int(y)) for x, y in cells)
+        except (TypeError, ValueError):
+            raise ValueError(f"region {name!r}: cells must be (x, y) pairs, got "
+                             f"{cells!r}.") from None
+        if not xy:
+            raise ValueError(f"region {name!r} has no cells; give it at least one.")
+        off = [c for c in xy if not (0 <= c[0] < size and 0 <= c[1] < size)]
+        if off:
+            raise ValueError(f"region {name!r}: cells {off} lie outside the {size}x{size} "
+                             f"grid.")
+        checked[name] = xy
+    return checked
 
 
 def _check_n_experts(n: int) -> None:

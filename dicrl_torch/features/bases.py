@@ -12,13 +12,14 @@ a per-expert reward table plus a joint-state table, never a 387M-entry array.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 
-from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel, check_regions
 
 
 @dataclass(frozen=True)
@@ -132,6 +133,10 @@ class FeatureBasis(nn.Module):
     (cached) :class:`FactoredFeatures`, checked to lie in ``[0, max_value]``."""
 
     max_value: float = 1.0
+    # Cells that each *region* feature (one covering several cells) marks, by feature
+    # name, so that constraint maps can draw a learned region; single-cell features are
+    # recognised by their ``cell(x,y)`` names.
+    region_cells: Mapping[str, tuple[int, ...]] = {}
 
     def __init__(self, model: TabularGridModel) -> None:
         super().__init__()
@@ -288,6 +293,60 @@ class PerExpertIndicatorCostBasis(_IndicatorCostBasis):
     ``l_c = N (S1 + 9) + 1``."""
 
     per_expert = True
+
+
+class RegionIndicatorCostBasis(_IndicatorCostBasis):
+    """The shared basis plus one indicator per named *region* (a set of cells), as in
+    Scobee & Sastry's grid world, where each wall colour is one constraint feature:
+    ``l_c = S1 + 9 + R + 1``. A region's feature counts every expert standing in one of
+    its cells, like a cell's.
+
+    A region forbids all its cells with one weight, so the demonstrations' evidence
+    against any of its cells moves that one weight: a wall of cells that no single cell's
+    evidence would mark can be learned as a whole.
+
+    Ground truth. The cells of a region now have two features, so the true
+    representation ``ω_cE`` must choose; it follows Scobee & Sastry: a region whose cells
+    are all obstacles is a true constraint and its cells' own indicators carry
+    ``ω_cE = 0`` (redundant, and counted as false if learned); every other obstacle is
+    constrained by its cell's indicator; a region holding a free cell is not a
+    constraint.
+
+    Args:
+        model: the tabular model.
+        regions: ``name -> cells``, each cell an ``(x, y)`` pair; default the layout's
+            own (``GridLayout.regions``: Scobee's two wall colours on his layout, none
+            on an open grid, which leaves the shared basis).
+    """
+
+    per_expert = False
+
+    def __init__(self, model: TabularGridModel,
+                 regions: Mapping[str, Sequence[tuple[int, int]]] | None = None) -> None:
+        super().__init__(model)
+        layout = model.layout
+        checked = check_regions(layout.regions if regions is None else regions, layout.size)
+        self.region_cells = {f"region {name}": tuple(sorted({layout.cell(c) for c in cells}))
+                             for name, cells in checked.items()}
+        self.names = self.names[:-1] + list(self.region_cells) + ["collision"]
+
+    def build(self) -> FactoredFeatures:
+        f = super().build()  # cells, actions and collision; the region columns are 0
+        first = self._unit
+        for r, cells in enumerate(self.region_cells.values()):
+            f.local[:, list(cells), :, first + r] = 1.0
+        return f
+
+    def true_constraints(self, layout: GridLayout | None = None) -> torch.Tensor:
+        layout = layout or self.model.layout
+        mask = super().true_constraints(layout)
+        obstacle = torch.from_numpy(layout.obstacle_mask())
+        for r, cells in enumerate(self.region_cells.values()):
+            walled = bool(obstacle[list(cells)].all())
+            mask[self._unit + r] = walled
+            if walled:
+                mask[list(cells)] = False
+        return mask
 
 
 # ------------------------------------------------------------------ deep / generic basis
