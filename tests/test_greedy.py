@@ -401,19 +401,27 @@ def test_mce_skips_a_candidate_a_slipped_demonstration_contradicts():
     assert math.isfinite(ll_me) and res_me.constraint_mask[target]
 
 
+def scobee_single_expert(cost_basis_class, *, temperature):
+    """The paper's layout with one expert (Scobee's setting), 20% slip, and 100
+    demonstrations of the true CMG's expert at `temperature` (0: optimal)."""
+    model = TabularGridModel(layout=GridLayout.scobee(1), horizon=40, gamma=0.99,
+                             p_success=0.8)
+    solver = FactoredSoftBellman(model=model, dtype=torch.float64)
+    rb, cb = GoalClosenessRewardBasis(model), cost_basis_class(model)
+    reward = rb().weighted(rb.true_weights())
+    demos = sample_trajectories(expert_solution(solver=solver, reward_features=rb(),
+                                                reward_weights=rb.true_weights(),
+                                                temperature=temperature),
+                                100, np.random.default_rng(0))
+    return solver, cb, reward, demos
+
+
 def test_scobee_single_expert_prefers_a_false_wall_the_likelihood_cannot_tell_apart():
     """The paper's layout, one expert (Scobee's setting), 20% slip: the cells x = 2,
     y = 4..8 form a dead-end pocket for the constrained expert, so a wall there explains
     the demonstrations as well as the true obstacles at x = 4 — better, in likelihood,
     than the true constraint set. The greedy meets the pocket first and learns it."""
-    layout = GridLayout.scobee(1)
-    model = TabularGridModel(layout=layout, horizon=40, gamma=0.99, p_success=0.8)
-    solver = FactoredSoftBellman(model=model, dtype=torch.float64)
-    rb, cb = GoalClosenessRewardBasis(model), SharedIndicatorCostBasis(model)
-    reward = rb().weighted(rb.true_weights())
-    demos = sample_trajectories(expert_solution(solver=solver, reward_features=rb(),
-                                                reward_weights=rb.true_weights()),
-                                100, np.random.default_rng(0))
+    solver, cb, reward, demos = scobee_single_expert(SharedIndicatorCostBasis, temperature=0.0)
     true = cb.true_constraints()
     reach = reachable_constraints(solver=solver, reward=reward, cost_basis=cb, true_mask=true)
     assert [cb.names[j] for j in torch.nonzero(reach).flatten()] == [
@@ -437,15 +445,7 @@ def test_scobee_wall_colours_let_the_greedy_learn_the_wall_as_one_feature():
     three cells and is learned right after NE; every reachable true constraint is
     recovered, and the false ones are cells of the dead-end pocket that no
     demonstration happened to enter."""
-    layout = GridLayout.scobee(1)
-    model = TabularGridModel(layout=layout, horizon=40, gamma=0.99, p_success=0.8)
-    solver = FactoredSoftBellman(model=model, dtype=torch.float64)
-    rb, cb = GoalClosenessRewardBasis(model), RegionIndicatorCostBasis(model)
-    reward = rb().weighted(rb.true_weights())
-    demos = sample_trajectories(expert_solution(solver=solver, reward_features=rb(),
-                                                reward_weights=rb.true_weights(),
-                                                temperature=1.0),
-                                100, np.random.default_rng(0))
+    solver, cb, reward, demos = scobee_single_expert(RegionIndicatorCostBasis, temperature=1.0)
     true = cb.true_constraints()
     reach = reachable_constraints(solver=solver, reward=reward, cost_basis=cb, true_mask=true)
     assert [cb.names[j] for j in torch.nonzero(reach).flatten()] == [
