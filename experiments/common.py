@@ -83,20 +83,23 @@ def write_json(path: Path, obj) -> None:
 
 
 def results_record(cfg, *, t_start: float, methods: dict, disagreement: float | None,
-                   histories: dict[str, list[dict]]) -> dict:
+                   histories: dict[str, list[dict]],
+                   baseline_seconds: dict[str, float] | None = None) -> dict:
     """``results.json`` (DESIGN §8) of a finished run.
 
     Two entries are timings, the only ones in which two runs of the same seed differ:
     ``wall_s``, this process's time since ``t_start``, and ``training_s``, each trained
-    method's outer iterations summed over every process that ran them. A run resumed
-    across sessions thus still reports what its training took (its ``wall_s`` counts only
-    the last segment). For the same reason the history's per-iteration ``seconds`` are
-    left out.
+    method's outer iterations summed over every process that ran them, and each greedy
+    baseline's ``baseline_seconds`` (its candidates' solves, also summed over resumes).
+    A run resumed across sessions thus still reports what its training took (its
+    ``wall_s`` counts only the last segment). For the same reason the history's
+    per-iteration ``seconds`` are left out.
     """
+    training_s = {k: sum(h["seconds"] for h in hist) for k, hist in histories.items()
+                  if hist and all(h.get("seconds") is not None for h in hist)}
     return {
         "experiment": cfg.name, "wall_s": time.perf_counter() - t_start,
-        "training_s": {k: sum(h["seconds"] for h in hist) for k, hist in histories.items()
-                       if hist and all(h.get("seconds") is not None for h in hist)},
+        "training_s": {**training_s, **(baseline_seconds or {})},
         "methods": {k: {"learners": v["learners"]} for k, v in methods.items()},
         "consensus_max_pairwise_cost_distance": disagreement,
         "history": {k: [{**h, "seconds": None} for h in hist] for k, hist in histories.items()},
@@ -111,7 +114,7 @@ def print_timings(results: dict, resumed: bool) -> None:
     print(f"\nwall time {results['wall_s']:.0f} s"
           + ("" if gap is None else f"; consensus max ‖ω_c − ω_c'‖ = {gap:.1e}"))
     if resumed and results["training_s"]:
-        print("outer iterations, every segment of the resumed run counted: "
+        print("training, every segment of the resumed run counted: "
               + ", ".join(f"{k} {s:.0f} s" for k, s in results["training_s"].items()))
 
 

@@ -379,8 +379,9 @@ def run_greedy(name: str, greedy: GreedyConstraintInference, ckpt: Checkpoints,
 
 
 def run_baselines(cfg, p: Problem, logger, out: Path, ckpt: Checkpoints,
-                  stop: StopOnSignal | None = None) -> tuple[dict, dict]:
-    """Run the requested greedy baselines: their table rows and per-step histories.
+                  stop: StopOnSignal | None = None) -> tuple[dict, dict, dict]:
+    """Run the requested greedy baselines: their table rows, per-step histories and
+    seconds (every resumed segment counted).
 
     Every greedy step (a constraint added) logs ``eval/FPR``, ``eval/FNR`` and
     ``greedy/log_likelihood`` at step ``k`` = constraints added so far, under the run
@@ -388,7 +389,7 @@ def run_baselines(cfg, p: Problem, logger, out: Path, ckpt: Checkpoints,
     """
     import matplotlib.image
 
-    methods, histories = {}, {}
+    methods, histories, seconds = {}, {}, {}
     for name, greedy in make_baselines(cfg, p).items():
         res = run_greedy(name, greedy, ckpt, stop)
         run = name.lower().replace("-", "_")
@@ -419,7 +420,8 @@ def run_baselines(cfg, p: Problem, logger, out: Path, ckpt: Checkpoints,
         logger.scalar(run, "eval/CVR", row["CVR"], k)
         methods[name] = {"D": "×", "NATR": "×", "learners": [row]}
         histories[name] = history
-    return methods, histories
+        seconds[name] = res.seconds
+    return methods, histories, seconds
 
 
 # ---------------------------------------------------------------------- training
@@ -547,7 +549,8 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
         methods["C-ICRL"] = {"D": "×", "NATR": "✓", "learners": evaluate_learners(
             "C-ICRL", c, p, cfg, logger, lambda v: "c_icrl", out, ckpt)}
         histories["C-ICRL"] = c.history
-    baseline_rows, baseline_histories = run_baselines(cfg, p, logger, out, ckpt, stop)
+    baseline_rows, baseline_histories, baseline_seconds = run_baselines(cfg, p, logger, out,
+                                                                         ckpt, stop)
     methods.update(baseline_rows)  # before the experts: the paper's row order
     histories.update(baseline_histories)
     for name, sol in (("Experts (ground truth)", p.experts), ("Experts (nominal)", p.nominal)):
@@ -557,7 +560,7 @@ def finish(cfg, out: Path, p: Problem, d_icrl: dict, logger, ckpt: Checkpoints,
 
     results = results_record(cfg, t_start=t_start, methods=methods,
                              disagreement=None if d_icrl is None else d_icrl["disagreement"],
-                             histories=histories)
+                             histories=histories, baseline_seconds=baseline_seconds)
     write_json(out / "results.json", results)
     # After results.json: a figure that fails to draw loses no result.
     figures = write_figures(cfg, out, p, methods, results["history"], logger)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import fractions
+import json
 import shlex
 import signal
 import subprocess
@@ -351,10 +352,16 @@ def test_greedy_baseline_stopped_mid_search_resumes_where_it_was(tmp_path, refer
     name, n = crash.split(":")
     if sig == "TERM":
         assert f"checkpoint {name} saved at {n} candidates evaluated" in stopped.stderr
+    before = torch.load(tmp_path / "checkpoint.pt", weights_only=True)[name]["greedy"]
     resumed = run_train(tmp_path, "baselines=greedy", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert f"{name} at {n} candidates evaluated)" in resumed.stdout
     assert comparable(tmp_path) == comparable(reference_greedy)
+    # The baseline's training time counts the stopped process's candidates too.
+    after = torch.load(tmp_path / "checkpoint.pt", weights_only=True)[name]["greedy"]
+    training_s = json.loads((tmp_path / "results.json").read_text())["training_s"]
+    assert {"ME-greedy", "MCE-greedy"} <= set(training_s)
+    assert training_s[name] >= after["seconds"] > before["seconds"] > 0
 
 
 def test_greedy_baselines_in_a_job_of_their_own_merge_into_the_run(tmp_path, reference_greedy):
