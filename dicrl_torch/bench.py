@@ -1,6 +1,6 @@
 """Benchmarks: ``python -m dicrl_torch.bench solver --experts N [--grid G] ...``.
 
-Prints one JSON line (DESIGN §8)::
+Prints one JSON line (docs/design.md §8)::
 
     {"pairs": int, "backward_sweep_s": float, "forward_sweep_s": float,
      "peak_rss_gb": float, "device": str, ...}

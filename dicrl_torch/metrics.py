@@ -1,10 +1,12 @@
-"""Metrics of the paper (DESIGN §6) as pure functions, and batched evaluation
+"""Metrics of the paper (docs/design.md §6) as pure functions, and batched evaluation
 rollouts in the true CMG.
 
 - CR: total true reward of all experts in an episode (mean ± std over episodes), in
   the *true* CMG where a violator stops and earns nothing more.
 - FPR = |learned \\ true| / |learned| (0 when nothing is learned).
 - FNR = |true \\ learned| / |true|.
+- FPR and FNR are None (not applicable) for a cost basis without a ground-truth
+  constraint set (:func:`true_constraints_of`).
 - CVR: mean over episodes of the fraction of experts that violate a true constraint.
 - RFD = ‖ω_r − ω_rE‖ / ‖ω_rE‖.
 """
@@ -17,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel, decode_joint
 
 
 def _as_bool(mask, name: str) -> np.ndarray:
@@ -27,20 +29,40 @@ def _as_bool(mask, name: str) -> np.ndarray:
     return m
 
 
-def false_positive_rate(learned, true) -> float:
-    """|learned \\ true| / |learned|; 0 when nothing is learned."""
+def _same_shape_masks(learned, true) -> tuple[np.ndarray, np.ndarray]:
+    """``learned`` and ``true`` as boolean masks of one shape (FPR and FNR compare them)."""
     learned, true = _as_bool(learned, "learned"), _as_bool(true, "true")
     if learned.shape != true.shape:
         raise ValueError(f"learned {learned.shape} and true {true.shape} masks differ in shape.")
+    return learned, true
+
+
+def true_constraints_of(basis) -> np.ndarray | None:
+    """The ground-truth constraint set ``[l]`` bool of a cost basis, or None when the basis
+    has none (e.g. ``FrozenModuleBasis``: learned features name no true constraint), for
+    which FPR and FNR do not apply."""
+    truth = getattr(basis, "true_constraints", None)
+    if truth is None:
+        return None
+    return _as_bool(truth(), "true_constraints()")
+
+
+def false_positive_rate(learned, true) -> float | None:
+    """|learned \\ true| / |learned|; 0 when nothing is learned; None when ``true`` is None
+    (no ground truth: the rate does not apply)."""
+    if true is None:
+        return None
+    learned, true = _same_shape_masks(learned, true)
     n = learned.sum()
     return float((learned & ~true).sum() / n) if n else 0.0
 
 
-def false_negative_rate(learned, true) -> float:
-    """|true \\ learned| / |true|; 0 when there is no true constraint."""
-    learned, true = _as_bool(learned, "learned"), _as_bool(true, "true")
-    if learned.shape != true.shape:
-        raise ValueError(f"learned {learned.shape} and true {true.shape} masks differ in shape.")
+def false_negative_rate(learned, true) -> float | None:
+    """|true \\ learned| / |true|; 0 when there is no true constraint; None when ``true``
+    is None (no ground truth: the rate does not apply)."""
+    if true is None:
+        return None
+    learned, true = _same_shape_masks(learned, true)
     n = true.sum()
     return float((true & ~learned).sum() / n) if n else 0.0
 
@@ -151,12 +173,11 @@ def rollout_true_cmg(*, policy: Policy, model: TabularGridModel, layout: GridLay
     all_cells = torch.empty(B, T + 1, N, dtype=torch.int64)
     all_actions = torch.empty(B, T, N, dtype=torch.int64)
     all_cells[:, 0] = cells
-    digits = A1 ** torch.arange(N - 1, -1, -1)
     expert_idx = torch.arange(N)
     for t in range(T):
         returns += (reward_table[expert_idx, cells].double() * active).sum(1)
         joint = torch.multinomial(policy(t, cells).double().cpu(), 1, generator=rng).squeeze(1)
-        actions = (joint.unsqueeze(1) // digits) % A1
+        actions = decode_joint(joint, A1, N)
         moved = torch.rand(B, N, generator=rng, dtype=torch.float64) < model.p_success
         cells, violation = true_cmg_step(layout, cells, actions, moved, active, model.next_cell,
                                          constrained)

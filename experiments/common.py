@@ -1,17 +1,21 @@
-"""Pieces every experiment entry point shares: building configured objects, atomic
-result files, the logger and the results table (DESIGN §8)."""
+"""What the entry points build from a Hydra config: the task of the configured
+environment, the run's settings, the trainer's settings and the logger. The only code,
+with ``config_checks``, that reads a config; everything is handed to the library
+(:mod:`dicrl_torch.runs`) as built objects (docs/design.md §2)."""
 
 from __future__ import annotations
 
 import dataclasses
-import json
-import time
-from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
+from config_checks import is_drone_run, shard_files_read_by, torchrun_rank
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
+
+from dicrl_torch.runs.checkpoints import training_config
+from dicrl_torch.runs.runner import RunSettings, TrainerSpec
 
 
 def build(cfg, **objects):
@@ -46,120 +50,103 @@ def build_grid(cfg) -> GridParts:
         true_reward_weights=reward_basis.true_weights(tuple(cfg.env.true_reward_weights)))
 
 
-def atomic_write(path: Path, write: Callable[[Path], Any]) -> None:
-    """``write(tmp)`` then rename ``tmp`` to ``path``: readers see the old file or the new
-    one, never half of one. An exception (or an interrupting signal) removes ``tmp``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        write(tmp)
-        tmp.replace(path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+def grid_task(cfg, rank: int | None = None):
+    """The grid world's task as process ``rank`` sees it (None: the process that holds
+    every shard). With ``shard_files``, a learner process reads only its own file and
+    does not solve for the experts (rank 0 writes their rows)."""
+    from dicrl_torch.runs.grid import GridTask
+
+    split = list(cfg.split)
+    if sum(split) != cfg.n_demonstrations:
+        raise ValueError(f"split {split} sums to {sum(split)}, not n_demonstrations="
+                         f"{cfg.n_demonstrations}; make them agree.")
+    g = build_grid(cfg)
+    files = cfg.get("shard_files")
+    with_experts = files is None or rank in (None, 0)
+    # Exact (float64) experts where it is cheap: the demonstrations do not depend on
+    # the learners' solver precision.
+    expert_solver = (build(cfg.solver, model=g.model, dtype=torch.float64)
+                     if with_experts and g.model.n_pairs < 5_000_000 else None)
+    a, b = cfg.algo, cfg.baselines
+    return GridTask(
+        layout=g.layout, model=g.model, solver=g.solver, reward_basis=g.reward_basis,
+        cost_basis=g.cost_basis, true_reward_weights=g.true_reward_weights,
+        expert_solver=expert_solver, expert_temperature=cfg.expert_temperature,
+        split=split, seed=cfg.seed, eval_episodes=cfg.eval_episodes,
+        shard_files=None if files is None else list(files),
+        read_shards=None if files is None else shard_files_read_by(cfg, rank),
+        with_experts=with_experts, threshold=a.threshold, prune_min_gain=a.prune_min_gain,
+        baselines=list(b.run), baseline_max_constraints=b.max_constraints,
+        baseline_epsilon=None if b.epsilon is None else float(b.epsilon))
 
 
-def trainer_settings(cfg, n_learners: int) -> dict[str, Any]:
-    """The :class:`~dicrl_torch.algos.dicrl.DICRL` keyword arguments read from ``cfg.algo``
-    and ``cfg.graph``, for a run of ``n_learners`` learners (C-ICRL: 1) whatever the
-    environment; the caller adds the learner model, shards and communicator."""
+def check_shard_contents(cfg) -> None:
+    """Read ``shard_files`` once before anything is solved: a file that does not fit the
+    run fails at start-up with the library's message, not minutes later."""
+    from dicrl_torch.runs.grid import load_shard_files
+
+    if is_drone_run(cfg) or cfg.get("shard_files") is None:
+        return
+    model = build(cfg.env.model, layout=instantiate(cfg.env.layout))
+    load_shard_files(list(cfg.shard_files), list(cfg.split), model,
+                     read=shard_files_read_by(cfg, torchrun_rank(cfg)))
+
+
+def drone_task(cfg):
+    """The drone arena's task (imports stable-baselines3: only for the arena)."""
+    from dicrl_torch.runs.drones import DroneTask, derived_seed
+
+    reward_basis = instantiate(cfg.features.reward)
+    cost_basis = instantiate(cfg.features.cost)
+    s, a, b = cfg.solver, cfg.algo, cfg.baselines
+    solver = build(s.solver, reward_basis=reward_basis, cost_basis=cost_basis,
+                   seed=derived_seed(cfg.seed, 1), env_kwargs=dict(cfg.env.arena))
+    return DroneTask(
+        solver=solver, reward_basis=reward_basis, cost_basis=cost_basis,
+        split=list(cfg.split), seed=cfg.seed, eval_episodes=cfg.eval_episodes,
+        eval_action=s.eval_action, timesteps=s.timesteps, n_eval_episodes=s.n_eval_episodes,
+        warmup_timesteps=s.warmup_timesteps, init_reward_weights=a.init_reward_weights,
+        init_multiplier=a.init_multiplier, init_cost_weights=a.init_cost_weights,
+        final_timesteps=s.final_timesteps, final_checks=s.final_checks,
+        final_restarts=s.final_restarts, final_score=s.final_score, threshold=a.threshold,
+        baseline=bool(b.run), baseline_penalty=b.get("penalty", 10.0),
+        baseline_timesteps=b.get("timesteps", 3000),
+        baseline_epsilon=None if b.epsilon is None else float(b.epsilon),
+        baseline_max_constraints=b.max_constraints)
+
+
+def build_task(cfg, rank: int | None = None):
+    """The configured environment's task."""
+    return drone_task(cfg) if is_drone_run(cfg) else grid_task(cfg, rank)
+
+
+def run_settings(cfg) -> RunSettings:
+    container = OmegaConf.to_container(cfg, resolve=True)
     a = cfg.algo
-    graph = {k: build(cfg.graph[k], n_learners=n_learners) for k in ("inner", "outer")}
-    # Consensus averages the learners' steps α m^[v] ∇G^[v] into α (m / N_L) ∇G; one
-    # learner with all m trajectories takes the same step on G with α / N_L.
-    steps = instantiate(a.steps)
-    scale = n_learners / len(cfg.split)
-    steps = dataclasses.replace(steps, alpha_bar=steps.alpha_bar * scale)
-    return dict(inner_schedule=graph["inner"], outer_schedule=graph["outer"], steps=steps,
-                inner_steps=a.inner_steps, lsca_curvature=a.lsca_curvature,
-                prune_accrued=a.prune_accrued, init_cost_weights=a.init_cost_weights,
-                init_reward_weights=a.init_reward_weights, init_multiplier=a.init_multiplier,
-                inner_method=a.inner_method, inner_step=a.inner_step * scale)
+    return RunSettings(experiment=cfg.name, config=container,
+                       training_config=training_config(container),
+                       outer_iterations=a.outer_iterations, eval_every=cfg.eval_every,
+                       checkpoint_every=cfg.checkpoint_every, resume=cfg.resume,
+                       run_d_icrl=a.run_d_icrl, run_c_icrl=a.run_c_icrl)
 
 
-def write_json(path: Path, obj) -> None:
-    text = json.dumps(obj, indent=1)  # before opening anything: a failure writes nothing
-    atomic_write(path, lambda tmp: tmp.write_text(text))
+def trainer_spec(cfg) -> TrainerSpec:
+    """The :class:`~dicrl_torch.algos.dicrl.DICRL` settings of ``cfg.algo`` and
+    ``cfg.graph``, whatever the environment and the number of learners."""
+    a = cfg.algo
 
+    def schedules(n_learners: int):
+        return tuple(build(cfg.graph[k], n_learners=n_learners) for k in ("inner", "outer"))
 
-def results_record(cfg, *, t_start: float, methods: dict, disagreement: float | None,
-                   histories: dict[str, list[dict]],
-                   baseline_seconds: dict[str, float] | None = None) -> dict:
-    """``results.json`` (DESIGN §8) of a finished run.
-
-    Two entries are timings, the only ones in which two runs of the same seed differ:
-    ``wall_s``, this process's time since ``t_start``, and ``training_s``, each trained
-    method's outer iterations summed over every process that ran them, and each greedy
-    baseline's ``baseline_seconds`` (its candidates' solves, also summed over resumes).
-    A run resumed across sessions thus still reports what its training took (its
-    ``wall_s`` counts only the last segment). For the same reason the history's
-    per-iteration ``seconds`` are left out.
-    """
-    training_s = {k: sum(h["seconds"] for h in hist) for k, hist in histories.items()
-                  if hist and all(h.get("seconds") is not None for h in hist)}
-    return {
-        "experiment": cfg.name, "wall_s": time.perf_counter() - t_start,
-        "training_s": {**training_s, **(baseline_seconds or {})},
-        "methods": {k: {"learners": v["learners"]} for k, v in methods.items()},
-        "consensus_max_pairwise_cost_distance": disagreement,
-        "history": {k: [{**h, "seconds": None} for h in hist] for k, hist in histories.items()},
-        "config": OmegaConf.to_container(cfg, resolve=True),
-    }
-
-
-def print_timings(results: dict, resumed: bool) -> None:
-    """The run's wall time and final consensus; for a ``resumed`` run also the training
-    time of its methods, counting the segments before the resume."""
-    gap = results["consensus_max_pairwise_cost_distance"]
-    print(f"\nwall time {results['wall_s']:.0f} s"
-          + ("" if gap is None else f"; consensus max ‖ω_c − ω_c'‖ = {gap:.1e}"))
-    if resumed and results["training_s"]:
-        print("training, every segment of the resumed run counted: "
-              + ", ".join(f"{k} {s:.0f} s" for k, s in results["training_s"].items()))
+    return TrainerSpec(
+        schedules=schedules, steps=instantiate(a.steps), inner_step=a.inner_step,
+        n_shards=len(cfg.split),
+        options=dict(inner_steps=a.inner_steps, lsca_curvature=a.lsca_curvature,
+                     prune_accrued=a.prune_accrued, init_cost_weights=a.init_cost_weights,
+                     init_reward_weights=a.init_reward_weights,
+                     init_multiplier=a.init_multiplier, inner_method=a.inner_method))
 
 
 def make_logger(cfg, out: Path):
     return instantiate(cfg.logger, **({"root": out / "tb"} if "TensorBoard" in
                                       cfg.logger._target_ else {}))
-
-
-def log_disagreement(logger, trainer, n: int) -> None:
-    """The network run's ``consensus/`` distances after outer iteration ``n``: of ω_c
-    and of η̄. Gathers from every learner, so every learner process must call it;
-    ``logger`` None: take part without logging (the processes that do not own
-    ``network``)."""
-    gaps = {tag: trainer.disagreement(field)
-            for tag, field in (("consensus/max_pairwise_cost_distance", "cost_weights"),
-                               ("consensus/max_pairwise_eta_distance", "eta"))}
-    if logger is not None:
-        for tag, gap in gaps.items():
-            logger.scalar("network", tag, gap, n)
-
-
-# The paper's Table 1 (grid world) and Table 2 (drones) metric columns.
-TABLE1_COLUMNS = ("CR", "FPR", "FNR", "CVR", "RFD")
-TABLE2_COLUMNS = ("FPR", "FNR", "CVR", "SR")
-_FORMATS = {"FPR": (7, ".2f"), "FNR": (7, ".2f"), "CVR": (8, ".3f"), "RFD": (8, ".3f"),
-            "SR": (7, ".2f")}
-
-
-def print_table(methods: dict, columns: Sequence[str] = TABLE1_COLUMNS) -> None:
-    """Print ``methods`` (``{name: {"D", "NATR", "learners": [row, ...]}}``) in the paper's
-    layout: one line per learner, a metric that does not apply as N/A."""
-    fmt = lambda x, f: "N/A" if x is None else format(x, f)  # noqa: E731
-    head = f"{'':26s}{'D':>3s}{'NATR':>6s}"
-    for c in columns:
-        head += f"{'CR':>20s}" if c == "CR" else f"{c:>{_FORMATS[c][0]}s}"
-    print(head)
-    for name, m in methods.items():
-        for j, r in enumerate(m["learners"]):
-            label = f"{name} {j + 1}" if len(m["learners"]) > 1 else name
-            line = f"{label:26s}{m.get('D', 'N/A'):>3s}{m.get('NATR', 'N/A'):>6s}"
-            for c in columns:
-                if c == "CR":
-                    line += (f"{r['CR_mean']:11.2f} ± {r['CR_std']:6.2f}"
-                             if r.get("CR_mean") is not None else f"{'N/A':>20s}")
-                else:
-                    width, f = _FORMATS[c]
-                    line += f"{fmt(r.get(c), f):>{width}s}"
-            print(line)

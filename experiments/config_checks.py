@@ -1,5 +1,8 @@
-"""The entry points' config checks: every key known, every value in range, before any
-computation (a bad value would otherwise surface minutes later, deep in the solver).
+"""The entry points' config checks: every option fitting the environment (a basis, solver
+or baseline of the grid world on the drone arena, or the reverse, is refused: the classes
+say which kind of environment they serve, ``env_kind``), every key known, every value in
+range, before any computation (a bad value would otherwise surface minutes later, deep in
+the solver).
 
 ``check_config`` collects every problem and raises one :class:`ConfigError` naming, for
 each, the key, the value and the fix. ``train.py`` exits with code 2 on it.
@@ -112,6 +115,7 @@ DRONE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
     ("baselines.timesteps", int, _ge(1), "an int >= 1 (SAC steps per greedy trial)", "3000"),
 ]
 GRID_ONLY = ("env.model.", "env.layout.")
+DRONE_BASELINE_KEYS = ("baselines.penalty", "baselines.timesteps")  # when one runs
 
 # The baselines' table rows (names as in the paper) and the greedy's demonstrator model.
 BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
@@ -150,10 +154,12 @@ def _type_ok(value, kind) -> bool:
     return isinstance(value, int | float) and math.isfinite(value)
 
 
-def _unknown_keys(node, path: str, problems: list[str]) -> None:
+def _unknown_keys(node, path: str, problems: list[str], skip: frozenset[str] = frozenset()
+                  ) -> None:
     """Keys of ``node`` (and below) that nothing reads: a misspelt or stray override would
-    otherwise be ignored (``+key=...`` gets past Hydra's struct mode)."""
-    if not isinstance(node, DictConfig):
+    otherwise be ignored (``+key=...`` gets past Hydra's struct mode). Nodes at the paths
+    ``skip`` (options that do not fit the environment) are not looked into."""
+    if not isinstance(node, DictConfig) or path in skip:
         return
     keys = set(node.keys())
     known, reader = KNOWN_KEYS.get(path), f"'{path}'" if path else "the top level"
@@ -177,7 +183,7 @@ def _unknown_keys(node, path: str, problems: list[str]) -> None:
             problems.append(f"unknown key '{full}': {reader} takes no option '{key}'; "
                             f"{hint} it or fix its spelling.")
     for key in keys:
-        _unknown_keys(node[key], f"{path}.{key}" if path else key, problems)
+        _unknown_keys(node[key], f"{path}.{key}" if path else key, problems, skip)
 
 
 def _check_shard_files(cfg, drones: bool, problems: list[str]) -> None:
@@ -249,21 +255,153 @@ def is_simulated(cfg) -> bool:
     return not issubclass(get_class(cfg.comm._target_), DistributedCommunicator)
 
 
+# ---------------------------------------------------------------- options of the environment
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+# The environment kinds (the ``env_kind`` of the classes) and how the messages name them.
+KIND_WORDS = {"grid": "the grid world", "continuous": "the drone arena"}
+# The config groups whose options serve one kind of environment, and what an option is.
+KIND_GROUPS = {"features/reward": "a basis", "features/cost": "a basis",
+               "solver": "a solver", "baselines": "baselines"}
+
+
+def env_kind(env) -> str:
+    """The kind of the environment node ``env`` (``cfg.env``, or an env option):
+    ``"continuous"`` (the drone arena, ``arena``) or ``"grid"``."""
+    return "continuous" if OmegaConf.select(env, "arena", default=None) is not None else "grid"
+
+
+def class_env_kind(cls: type) -> str | None:
+    """The kind of environment ``cls`` serves: its ``env_kind`` attribute, which the
+    feature bases (:class:`dicrl_torch.features.base.Basis`) and the solvers declare.
+    None: a class that declares none, not checked."""
+    return getattr(cls, "env_kind", None)
+
+
+def _target_of(node) -> str | None:
+    """The class path of an option's node: its ``_target_`` (the drones' solver node: its
+    ``solver._target_``)."""
+    for key in ("_target_", "solver._target_"):
+        target = OmegaConf.select(node, key, default=None) if OmegaConf.is_dict(node) else None
+        if isinstance(target, str):
+            return target
+    return None
+
+
+def _identity(group: str, node) -> Any:
+    """What tells an option of ``group`` apart: its baseline rows or its class path."""
+    if group == "baselines":
+        run = OmegaConf.select(node, "run", default=None) if OmegaConf.is_dict(node) else None
+        return tuple(run) if OmegaConf.is_list(run) else None
+    return _target_of(node)
+
+
+def option_kind(group: str, node) -> str | None:
+    """The kind of environment the option ``node`` of ``group`` serves (None: any, or
+    unknown): that of its class, or for baselines that of its rows."""
+    if group == "baselines":
+        run = _identity(group, node)
+        for kind, names in (("grid", BASELINES), ("continuous", DRONE_BASELINES)):
+            if run and all(isinstance(x, str) and x in names for x in run):
+                return kind
+        return None
+    target = _target_of(node)
+    if target is None:
+        return None
+    try:
+        return class_env_kind(get_class(target))
+    except Exception:  # noqa: BLE001 - an import failure is reported by the key checks
+        return None
+
+
+def _options(group: str) -> dict[str, DictConfig]:
+    return {p.stem: OmegaConf.load(p) for p in sorted((CONFIGS / group).glob("*.yaml"))}
+
+
+def _default_options() -> set[tuple[str, str]]:
+    """(group, option) pairs that train.yaml or an experiment chooses: the suggested fixes
+    name them first."""
+    chosen = set()
+    for path in [CONFIGS / "train.yaml", *sorted((CONFIGS / "experiment").glob("*.yaml"))]:
+        for entry in OmegaConf.load(path).get("defaults", []):
+            if OmegaConf.is_dict(entry):
+                for key, option in entry.items():
+                    chosen.add((str(key).removeprefix("override").strip().lstrip("/"),
+                                str(option)))
+    return chosen
+
+
+def _targets(node, path: str = "") -> dict[str, str]:
+    if not OmegaConf.is_dict(node):
+        return {}
+    found = {path: node["_target_"]} if "_target_" in node else {}
+    for key in node:
+        if key != "_target_":
+            found.update(_targets(node[key], f"{path}.{key}"))
+    return found
+
+
+def _env_name(cfg, kind: str) -> str:
+    """``env=<option>`` of the configured environment (its option found by its classes),
+    or the options of its kind."""
+    envs = {o: n for o, n in _options("env").items() if env_kind(n) == kind}
+    same = [o for o, n in envs.items() if _targets(n) == _targets(cfg.env)]
+    return f"env={same[0]}" if len(same) == 1 else "env=" + " or env=".join(envs)
+
+
+def misfit_options(cfg) -> dict[str, str]:
+    """The options of ``KIND_GROUPS`` that serve another kind of environment than the
+    configured one, each with its problem: the config path of the option's node ->
+    what it is, whose, and the options of the group that fit."""
+    kind, problems = env_kind(cfg.env), {}
+    defaults = None
+    for group, noun in KIND_GROUPS.items():
+        path = group.replace("/", ".")
+        node = OmegaConf.select(cfg, path, default=None)
+        theirs = option_kind(group, node)
+        if theirs is None or theirs == kind:
+            continue
+        options = _options(group)
+        defaults = _default_options() if defaults is None else defaults
+        name = next((f"{group}={o}" for o, n in options.items()
+                     if _identity(group, n) == _identity(group, node)), None)
+        if name is None:
+            if group == "baselines":  # rows of its own: the rows' check names the fix
+                continue
+            name = f"{path}._target_={_target_of(node)}"
+        fit = sorted((o for o, n in options.items() if option_kind(group, n) == kind),
+                     key=lambda o: ((group, o) not in defaults, o))
+        fit += [o for o, n in options.items() if option_kind(group, n) is None]
+        fix = (f"use {group}={fit[0]}" + (f" (or {', '.join(fit[1:])})" if fit[1:] else "")
+               if fit else f"no {group} option serves it; add one")
+        verb = "are" if group == "baselines" else "is"
+        problems[path] = (f"{name} {verb} {noun} of {KIND_WORDS.get(theirs, theirs)}; with "
+                          f"{_env_name(cfg, kind)} {fix}.")
+    return problems
+
+
 def check_config(cfg: DictConfig) -> None:
-    """Refuse unknown keys and out-of-range values before anything is computed.
+    """Refuse options of another environment, unknown keys and out-of-range values
+    before anything is computed.
 
     Raises:
         ConfigError: listing every problem, each naming the key, the value and the fix.
     """
-    problems: list[str] = []
-    _unknown_keys(cfg, "", problems)
+    # An option of another environment first: its keys are not checked (they would be
+    # checked against the wrong class or rules); those of the fitting option will be.
+    misfits = misfit_options(cfg)
+    problems: list[str] = list(misfits.values())
+    _unknown_keys(cfg, "", problems, skip=frozenset(misfits))
     drones = is_drone_run(cfg)
+    run = OmegaConf.select(cfg, "baselines.run", default=None)
     rules = VALUE_RULES + DRONE_RULES if drones else VALUE_RULES
     for key, kind, ok, must, example in rules:
-        if drones and key.startswith(GRID_ONLY):
+        if (drones and key.startswith(GRID_ONLY)) or key.startswith(
+                tuple(f"{path}." for path in misfits)):
             continue
         if OmegaConf.select(cfg, key, default="__missing__") == "__missing__":
-            if key != "comm.timeout_s":  # only the distributed backend has a timeout
+            # only the distributed backend has a timeout; only a drone baseline that runs
+            # a penalty and timesteps
+            if key != "comm.timeout_s" and not (key in DRONE_BASELINE_KEYS and not run):
                 problems.append(f"'{key}' is missing; set it, e.g. {key}={example}.")
             continue
         value = OmegaConf.select(cfg, key)
@@ -281,10 +419,10 @@ def check_config(cfg: DictConfig) -> None:
                         f"{cfg.n_demonstrations}; make them agree (e.g. n_demonstrations="
                         f"{sum(split)}).")
     _check_shard_files(cfg, drones, problems)
-    run = OmegaConf.select(cfg, "baselines.run", default=None)
     names, example = (list(DRONE_BASELINES), "baselines=greedy_drones") if drones else \
         (list(BASELINES), "baselines=greedy")
-    if not (OmegaConf.is_list(run) and all(isinstance(x, str) and x in names for x in run)
+    if "baselines" not in misfits and not (
+            OmegaConf.is_list(run) and all(isinstance(x, str) and x in names for x in run)
             and len(set(run)) == len(run)):
         problems.append(f"baselines.run={_plain(run)} is invalid: it must be a list of "
                         f"distinct names among {names} (the rows to add; [] for "
@@ -294,14 +432,11 @@ def check_config(cfg: DictConfig) -> None:
     if drones and _type_ok(checks, int) and _type_ok(final, int) and 1 <= final < checks:
         problems.append(f"solver.final_checks={checks} exceeds solver.final_timesteps={final}: "
                         f"each scored chunk needs at least one step; lower final_checks.")
-    if drones and not is_simulated(cfg):
-        problems.append("comm=distributed is not supported for the drone arena yet (its SAC "
-                        "solvers are not checkpointed across processes); use comm=simulated.")
     if OmegaConf.select(cfg, "algo.run_d_icrl", default=True) is False:
-        if drones:
-            problems.append("algo.run_d_icrl=false is not supported for the drone arena (its "
-                            "greedy baseline starts from D-ICRL's learned reward); set "
-                            "algo.run_d_icrl=true.")
+        if drones and OmegaConf.select(cfg, "baselines.run", default=None):
+            problems.append("algo.run_d_icrl=false leaves the drone arena's greedy baseline "
+                            "without its reward (D-ICRL's learned one, as in the paper); set "
+                            "algo.run_d_icrl=true or baselines=none.")
         elif not is_simulated(cfg):
             problems.append("algo.run_d_icrl=false trains no learner processes, so "
                             "comm=distributed has nothing to run; use comm=simulated.")

@@ -2,7 +2,7 @@
 
     python experiments/demo_foundation.py [env.layout.n_experts=3] [seed=1] ...
 
-Writes ``results.json`` (DESIGN §8 layout, expert rows only), the demonstrations
+Writes ``results.json`` (docs/design.md §8 layout, expert rows only), the demonstrations
 (``demos.npz`` and one shard per learner), visitation heat maps (PNG) and the
 learners' local estimates into the Hydra run directory, and prints the table.
 This is the only place besides the other entry points that reads a config.
@@ -23,9 +23,10 @@ from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from dicrl_torch.demos import partition_demonstrations, save_demonstrations
-from dicrl_torch.demos.experts import expert_solution, local_estimates, sample_trajectories
+from dicrl_torch.demos.features import local_estimates
 from dicrl_torch.envs.gridworld_env import render_grid
 from dicrl_torch.metrics import rollout_true_cmg
+from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 
 
 def visitation(states: np.ndarray, n_cells: int) -> np.ndarray:

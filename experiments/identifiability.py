@@ -29,9 +29,9 @@ import torch
 
 from dicrl_torch.algos.greedy import constraint_masks
 from dicrl_torch.algos.icrl import log_likelihood
-from dicrl_torch.demos.experts import expert_solution, sample_trajectories
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel
 from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
+from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 BOTTOM_WALL = ("cell(4,5)", "cell(4,6)", "cell(4,7)", "cell(4,8)")

@@ -24,7 +24,6 @@ import numpy as np
 import torch
 
 from dicrl_torch.algos.greedy import GreedyConstraintInference, reachable_constraints
-from dicrl_torch.demos.experts import expert_solution, sample_trajectories
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel
 from dicrl_torch.features.bases import (
     GoalClosenessRewardBasis,
@@ -32,6 +31,7 @@ from dicrl_torch.features.bases import (
     SharedIndicatorCostBasis,
 )
 from dicrl_torch.metrics import false_negative_rate, false_positive_rate, rollout_true_cmg
+from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 COST_BASES = {"shared": SharedIndicatorCostBasis, "regions": RegionIndicatorCostBasis}

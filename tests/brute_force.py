@@ -5,6 +5,7 @@ soft/hard Bellman recursions and dense occupancy propagation, in float64."""
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -69,15 +70,28 @@ def dense_solve(P: torch.Tensor, r: torch.Tensor, p0: torch.Tensor, T: int, gamm
         else:
             V[t] = temperature * torch.logsumexp(Q / temperature, 1)
             pis[t] = torch.softmax(Q / temperature, 1)
-    d = p0.clone()
+    occ, occ_s = discounted_occupancy(
+        p0, pis, gamma, lambda t, rho: torch.sparse.mm(P.t(), rho.reshape(-1, 1)).reshape(S))
+    return V, pis, occ, occ_s
+
+
+def discounted_occupancy(d0: torch.Tensor, pis: torch.Tensor, gamma: float,
+                         push: Callable[[int, torch.Tensor], torch.Tensor]
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Discounted occupancy ``[S, A]`` and state occupancy ``[S]`` of the policies
+    ``pis`` ``[T, S, A]`` from the state distribution ``d0`` ``[S]``; ``push(t, rho)``
+    takes the step-``t`` state-action distribution ``rho`` ``[S, A]`` to the next state
+    distribution ``[S]``."""
+    T, S, A = pis.shape
+    d = d0
     occ = torch.zeros(S, A, dtype=torch.float64)
     occ_s = torch.zeros(S, dtype=torch.float64)
     for t in range(T):
         rho = d.unsqueeze(1) * pis[t]
         occ += gamma**t * rho
         occ_s += gamma**t * d
-        d = torch.sparse.mm(P.t(), rho.reshape(-1, 1)).reshape(S)
-    return V, pis, occ, occ_s
+        d = push(t, rho)
+    return occ, occ_s
 
 
 def marginals(occ: torch.Tensor, n_experts: int, S1: int, A1: int) -> torch.Tensor:

@@ -117,7 +117,7 @@ def test_train_runs_end_to_end(tmp_path):
         assert key in res["methods"]["D-ICRL"]["learners"][0]
     assert (tmp_path / "tb" / "learner0").is_dir() and (tmp_path / "tb" / "network").is_dir()
     assert "FPR" in out.stdout and str(tmp_path) in out.stdout
-    # every learner's run has the same outer/, inner/ and eval/ tags (DESIGN: TensorBoard)
+    # every learner's run has the same outer/, inner/ and eval/ tags (docs/design.md §9)
     from tb_snapshot import read_scalars
 
     scalars = read_scalars(tmp_path)
@@ -219,3 +219,81 @@ def test_own_shard_files_reproduce_the_sampled_run(tmp_path):
     assert b["config"].pop("shard_files") == [str(f) for f in files]
     a["config"].pop("shard_files")
     assert a == b
+
+
+# ------------------------------------------------- options that do not fit the environment
+# What marks an option of the drone arena in its YAML (a drone basis, the arena, the
+# arena's SAC solver, the arena's greedy row); every other option is the grid world's,
+# but baselines=none, which fits both.
+DRONE_MARKERS = ("features.drone", "arena:", "solvers.sac", "M(C)E-greedy")
+FITS_BOTH = {("baselines", "none")}
+KIND_GROUPS = {"features/reward": "is a basis", "features/cost": "is a basis",
+               "solver": "is a solver", "baselines": "are baselines"}
+WORLDS = {"grid": "the grid world", "drones": "the drone arena"}
+
+
+def world_of(group: str, option: str) -> str | None:
+    if (group, option) in FITS_BOTH:
+        return None
+    text = (CONFIGS / group / f"{option}.yaml").read_text()
+    return "drones" if any(m in text for m in DRONE_MARKERS) else "grid"
+
+
+def compose_for(env: str, *overrides: str):
+    """``env`` with the experiment of its world (quick, or table2_quick for the arena)."""
+    experiment = "table2_quick" if world_of("env", env) == "drones" else "quick"
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name="train",
+                       overrides=[f"experiment={experiment}", f"env={env}", *overrides])
+
+
+def combinations(fit: bool) -> list[tuple[str, str, str]]:
+    return [(env, group, option) for env in group_options("env") for group in KIND_GROUPS
+            for option in group_options(group)
+            if world_of(group, option) is not None
+            and (world_of(group, option) == world_of("env", env)) == fit]
+
+
+@pytest.mark.parametrize("env,group,option", combinations(fit=False))
+def test_an_option_of_the_other_environment_is_refused(env, group, option):
+    import config_checks  # experiments/ is on pytest's pythonpath
+
+    with pytest.raises(config_checks.ConfigError) as info:
+        config_checks.check_config(compose_for(env, f"{group}={option}"))
+    text = str(info.value)
+    # one problem: the option's own keys are not checked against the wrong class or rules
+    assert text.startswith("1 problem(s) in the configuration, nothing was computed:"), text
+    theirs = WORLDS[world_of(group, option)]
+    want = f"{group}={option} {KIND_GROUPS[group]} of {theirs}; with env={env} use {group}="
+    assert want in text, text
+    fix = text.split(want, 1)[1].split(" ", 1)[0].rstrip(".")
+    assert world_of(group, fix) == world_of("env", env), text
+
+
+@pytest.mark.parametrize("env,group,option", combinations(fit=True)
+                         + [(env, "baselines", "none") for env in group_options("env")])
+def test_an_option_of_the_environment_passes(env, group, option):
+    import config_checks  # experiments/ is on pytest's pythonpath
+
+    config_checks.check_config(compose_for(env, f"{group}={option}"))
+
+
+def test_every_basis_says_which_environment_it_serves():
+    from hydra.utils import get_class
+
+    for group in ("features/reward", "features/cost"):
+        for option in group_options(group):
+            target = OmegaConf.load(CONFIGS / group / f"{option}.yaml")["_target_"]
+            kind = get_class(target).env_kind
+            assert kind == {"grid": "grid", "drones": "continuous"}[world_of(group, option)]
+
+
+def test_the_cli_refuses_a_misfit_before_any_computation(tmp_path):
+    out = subprocess.run(
+        [sys.executable, str(TRAIN), f"hydra.run.dir={tmp_path}", "experiment=quick",
+         "features/reward=fourier"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 2, out.stderr[-3000:]
+    assert ("features/reward=fourier is a basis of the drone arena; with env=gridworld use "
+            "features/reward=goal_closeness.") in out.stderr
+    assert "Traceback" not in out.stderr
+    assert {p.name for p in tmp_path.iterdir()} <= {".hydra", "train.log"}  # nothing else

@@ -8,6 +8,7 @@ import pytest
 import tiny_dicrl
 import torch
 
+from dicrl_torch.algos.callbacks import InnerScalars
 from dicrl_torch.algos.dicrl import DICRL, StepSizes
 from dicrl_torch.comm import (
     ALLOWED_FIELDS,
@@ -237,7 +238,7 @@ def test_inner_scalars_are_logged_per_learner(setup):
             self.rows.append((run, tag, step))
 
     rec = Recorder()
-    t = make(setup, logger=rec)
+    t = make(setup, callbacks=[InnerScalars(rec, lambda v: f"learner{v}")])
     t.train(2)
     runs = {r for r, _, _ in rec.rows}
     assert runs == {"learner0", "learner1", "learner2"}

@@ -1,4 +1,4 @@
-"""Tests of the drone arena, its demonstrations and feature bases (DESIGN §7)."""
+"""Tests of the drone arena, its demonstrations and feature bases (docs/design.md §7)."""
 
 from __future__ import annotations
 
@@ -12,12 +12,12 @@ import torch
 from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
+from dicrl_torch.demos import Trajectories, partition_demonstrations
 from dicrl_torch.demos.drone_demos import (
     PAPER_DRONE_SPLIT,
     DroneDemonstrations,
     load_drone_demonstrations,
     make_drone_demonstrations,
-    partition_drone_demonstrations,
     path_clearance,
     replay_pair,
     save_drone_demonstrations,
@@ -483,14 +483,33 @@ def test_not_an_archive(tmp_path):
 
 
 def test_partition_4_5(demos):
-    a, b = partition_drone_demonstrations(demos)
+    assert isinstance(demos, Trajectories) and demos.n_trajectories == demos.n_pairs == 9
+    a, b = partition_demonstrations(demos, PAPER_DRONE_SPLIT)
+    assert isinstance(a, DroneDemonstrations)
     assert (a.n_pairs, b.n_pairs) == PAPER_DRONE_SPLIT
     assert a == demos.subset(range(4)) and b == demos.subset(range(4, 9))
-    parts = partition_drone_demonstrations(demos, rng=np.random.default_rng(1))
+    parts = partition_demonstrations(demos, PAPER_DRONE_SPLIT, rng=np.random.default_rng(1))
     seeds = np.concatenate([p.seeds for p in parts])
     assert sorted(seeds.tolist()) == sorted(demos.seeds.tolist())
-    with pytest.raises(ValueError, match="sum to 8"):
-        partition_drone_demonstrations(demos, (4, 4))
+    # the same shuffle as the grid world's trajectories (one partition function)
+    order = np.random.default_rng(1).permutation(9)
+    assert parts[0] == demos.subset(order[:4]) and parts[1] == demos.subset(order[4:])
+    with pytest.raises(ValueError, match="sum to 8, but there are 9 pairs"):
+        partition_demonstrations(demos, (4, 4))
+    with pytest.raises(TypeError, match="Trajectories"):
+        partition_demonstrations(demos.states, PAPER_DRONE_SPLIT)
+
+
+def test_drone_demonstrations_equality_and_subsets(demos):
+    same = DroneDemonstrations(states=demos.states, actions=demos.actions,
+                               lengths=demos.lengths, dt=demos.dt, seeds=demos.seeds)
+    assert same == demos and same != demos.subset(range(8))
+    unseeded = DroneDemonstrations(states=demos.states, actions=demos.actions,
+                                   lengths=demos.lengths, dt=demos.dt)
+    assert unseeded != demos and demos != unseeded and unseeded.subset([1, 0]).seeds is None
+    assert demos.subset([2, 0]).lengths.tolist() == demos.lengths[[2, 0]].tolist()
+    with pytest.raises(TypeError, match="unhashable"):
+        hash(demos)
 
 
 # ---- features -----------------------------------------------------------------------

@@ -11,12 +11,7 @@ import pytest
 import torch
 
 from dicrl_torch.demos import PAPER_SPLIT, partition_demonstrations
-from dicrl_torch.demos.experts import (
-    discounted_feature_sums,
-    expert_solution,
-    local_estimates,
-    sample_trajectories,
-)
+from dicrl_torch.demos.features import discounted_feature_sums, local_estimates
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel
 from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
 from dicrl_torch.metrics import (
@@ -27,6 +22,7 @@ from dicrl_torch.metrics import (
     rollout_true_cmg,
     true_cmg_step,
 )
+from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 

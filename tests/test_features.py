@@ -1,14 +1,22 @@
-"""Feature bases: shapes, semantics, ground truth, validation, and the generic
-frozen-module basis."""
+"""Feature bases: shapes, semantics, ground truth, validation, the generic
+frozen-module basis, and the one protocol every shipped basis satisfies."""
 
 from __future__ import annotations
 
+import inspect
+from pathlib import Path
+
 import pytest
 import torch
+from hydra.utils import get_class, instantiate
+from omegaconf import OmegaConf
 from torch import nn
 
+from dicrl_torch.envs.drones import NOMINAL_STARTS
 from dicrl_torch.envs.grid import ACTION_NAMES, SCOBEE_REGIONS, GridLayout, TabularGridModel
+from dicrl_torch.features.base import Basis, ConstraintBasis
 from dicrl_torch.features.bases import (
+    FactoredFeatures,
     FrozenModuleBasis,
     GoalClosenessRewardBasis,
     LinearHead,
@@ -164,3 +172,42 @@ def test_basis_range_and_width_are_checked():
         FrozenModuleBasis(model, random_mlp(out_dim=4), out_dim=6)()
     with pytest.raises(ValueError, match="shape"):
         SharedIndicatorCostBasis(model)().weighted(torch.zeros(3))
+
+
+SHIPPED = sorted((Path(__file__).resolve().parents[1] / "configs" / "features").rglob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: f"{p.parent.name}/{p.stem}")
+def test_every_shipped_basis_is_a_basis(path):
+    """Every basis of configs/features/**, built as the runner builds it (a grid basis on
+    the tabular model), satisfies features.base.Basis, with the shapes it documents."""
+    cfg = OmegaConf.load(path)
+    build = instantiate(cfg, _partial_=True)
+    if "model" in inspect.signature(get_class(cfg._target_)).parameters:
+        model = TabularGridModel(layout=GridLayout.scobee(2), horizon=3)
+        basis = build(model=model)
+    else:
+        basis = build()
+    assert isinstance(basis, Basis)
+    assert basis.dim == len(basis.names) >= 1 and basis.max_value > 0
+    if basis.env_kind == "grid":
+        f = basis()
+        assert isinstance(f, FactoredFeatures)
+        assert f.local.shape == (2, model.n_cells, model.n_actions, basis.dim)
+    else:
+        assert basis.env_kind == "continuous"
+        states = torch.zeros(3, 2, 4, dtype=torch.float64)
+        states[..., :2] = torch.tensor(NOMINAL_STARTS, dtype=torch.float64)
+        assert basis(states).shape == (3, basis.dim)
+    # A cost basis knows the true constraints, but for a learned one (no ground truth).
+    if path.parent.name == "cost" and not cfg._target_.endswith("FrozenModuleBasis"):
+        assert isinstance(basis, ConstraintBasis)
+        truth = basis.true_constraints()
+        assert truth.dtype == torch.bool and truth.shape == (basis.dim,)
+
+
+def test_a_module_without_the_protocol_is_not_a_basis():
+    assert not isinstance(nn.Linear(2, 2), Basis)
+    assert not isinstance(FrozenModuleBasis(TabularGridModel(layout=GridLayout.scobee(1),
+                                                             horizon=3),
+                                            random_mlp(out_dim=2), out_dim=2), ConstraintBasis)

@@ -9,10 +9,9 @@ import matplotlib.image
 import numpy as np
 import pytest
 from test_configs import run_train  # the tiny end-to-end run (TINY: 2 learners)
-from test_table1 import compose_train
 from tiny_dicrl import build_tiny
+from tiny_train import compose_train
 
-from dicrl_torch.demos.experts import sample_trajectories
 from dicrl_torch.envs.grid import GridLayout
 from dicrl_torch.figures import (
     CURVES_FIGSIZE,
@@ -24,6 +23,7 @@ from dicrl_torch.figures import (
     state_visitation,
     visitation_heatmap,
 )
+from dicrl_torch.solvers.experts import sample_trajectories
 
 LAYOUT = GridLayout.open_grid(5, 1)  # no obstacles; start (0, 4), goal (4, 4)
 LEFT, RIGHT = LAYOUT.cell((1, 1)), LAYOUT.cell((3, 1))  # free cells in one row

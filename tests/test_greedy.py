@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 import torch
-from brute_force import joint_transition, marginals
+from brute_force import discounted_occupancy, joint_transition, marginals
 
 from dicrl_torch.algos.greedy import (
     GreedyConstraintInference,
@@ -25,12 +25,6 @@ from dicrl_torch.algos.greedy import (
     trajectory_log_likelihood,
 )
 from dicrl_torch.algos.icrl import log_likelihood
-from dicrl_torch.demos.experts import (
-    expert_solution,
-    forbidden_state_value,
-    hard_constraint_reward,
-    sample_trajectories,
-)
 from dicrl_torch.demos.storage import Demonstrations
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel
 from dicrl_torch.features.bases import (
@@ -41,6 +35,12 @@ from dicrl_torch.features.bases import (
     SharedIndicatorCostBasis,
 )
 from dicrl_torch.metrics import false_positive_rate, rollout_true_cmg
+from dicrl_torch.solvers.experts import (
+    expert_solution,
+    forbidden_state_value,
+    hard_constraint_reward,
+    sample_trajectories,
+)
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 TOL = 1e-9
@@ -74,16 +74,13 @@ def dense_me(P, r, p0, T, gamma, tau=1.0, terminal=None):
         V[t] = tau * torch.logsumexp(Q / tau, 1)
         pis[t] = torch.nan_to_num(torch.softmax(Q / tau, 1))  # all-forbidden rows: 0
     w0 = p0 * torch.exp((V[0] - V[0][p0 > 0].max()) / tau)
-    d = w0 / w0.sum()
-    occ = torch.zeros(S, A, dtype=torch.float64)
-    occ_s = torch.zeros(S, dtype=torch.float64)
-    for t in range(T):
-        rho = d.unsqueeze(1) * pis[t]
-        occ += gamma**t * rho
-        occ_s += gamma**t * d
+
+    def push(t, rho):  # through the tilted dynamics
         lt = L[t].reshape(-1, 1)
         tilt = torch.where(torch.isfinite(lt), torch.exp((V[t + 1].unsqueeze(0) - lt) / tau), 0.0)
-        d = rho.reshape(-1) @ torch.nan_to_num(P * tilt)
+        return rho.reshape(-1) @ torch.nan_to_num(P * tilt)
+
+    occ, occ_s = discounted_occupancy(w0 / w0.sum(), pis, gamma, push)
     return V, pis, L, occ, occ_s
 
 

@@ -1,4 +1,4 @@
-"""Tests of the PettingZoo grid-world CMG (DESIGN §3)."""
+"""Tests of the PettingZoo grid-world CMG (docs/design.md §3)."""
 
 from __future__ import annotations
 

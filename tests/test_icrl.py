@@ -14,14 +14,14 @@ from dicrl_torch.algos.icrl import (
     log_likelihood,
     model_reward,
 )
-from dicrl_torch.algos.models import TabularSolution
-from dicrl_torch.demos.experts import sample_trajectories
+from dicrl_torch.algos.models import LearnerModel, TabularLearnerModel, TabularSolution
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel
 from dicrl_torch.features.bases import (
     GoalClosenessRewardBasis,
     PerExpertIndicatorCostBasis,
     SharedIndicatorCostBasis,
 )
+from dicrl_torch.solvers.experts import sample_trajectories
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 
@@ -77,3 +77,24 @@ def test_dual_gradient_is_moment_mismatch():
     sol_hi = solver.solve(model_reward(fr, fc, w_r * 2, -1.0, w_c))
     grad_hi = dual_gradient(TabularSolution(sol_hi, fr, fc), stats, w_c)
     assert grad_hi[: fr.dim].sum() > grad[: fr.dim].sum()
+
+
+def test_tabular_learner_model_is_stateless_and_shares_its_solver():
+    model = TabularGridModel(layout=GridLayout.open_grid(3, 2), horizon=4, gamma=0.9)
+    solver = FactoredSoftBellman(model=model, dtype=torch.float64)
+    lm = TabularLearnerModel(solver=solver, reward_basis=GoalClosenessRewardBasis(model),
+                             cost_basis=SharedIndicatorCostBasis(model))
+    assert isinstance(lm, LearnerModel) and lm.stateful is False
+    # every learner solves with the one exact solver
+    assert lm.inner_solver(0) is solver and lm.inner_solver(3) is solver
+    assert lm.state_dict() == {}
+    lm.load_state_dict({})
+    with pytest.raises(ValueError, match="no state"):
+        lm.load_state_dict({"solvers": []})
+    eta = torch.tensor([1.0, 2.0, 1.0, 2.0, -1.0], dtype=torch.float64)
+    sol = lm.solve(0, eta, torch.full((lm.cost_dim,), 0.5, dtype=torch.float64))
+    # the policy without unwrapping the soft-Bellman solution
+    cells = torch.tensor([model.start_state])
+    assert sol.policy_at == sol.soft_bellman.policy_at
+    torch.testing.assert_close(sol.policy_at(0, cells), sol.soft_bellman.policy_at(0, cells),
+                               rtol=0, atol=0)

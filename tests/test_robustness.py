@@ -23,9 +23,8 @@ import numpy as np
 import pytest
 import tiny_dicrl
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
-from tiny_train import TINY, TRAIN, comparable, run_train
+from tiny_train import TINY, TRAIN, comparable, compose_train, finished_run, run_train
 
 from dicrl_torch.algos.dicrl import NonFiniteError, StepSizes
 from dicrl_torch.algos.icrl import model_reward
@@ -35,17 +34,17 @@ from dicrl_torch.features.bases import FactoredFeatures, FeatureBasis
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ROOT / "configs"
 
 
-import checkpoints  # noqa: E402 - experiments/ is on pytest's pythonpath
+import common  # noqa: E402 - experiments/ is on pytest's pythonpath
 import config_checks  # noqa: E402
-import train as entry  # noqa: E402
+
+from dicrl_torch.runs import checkpoints, signals  # noqa: E402
 
 
-def compose_train(*overrides: str):
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return compose(config_name="train", overrides=list(overrides))
+def training_config(cfg) -> dict:
+    """What a checkpoint of the run ``cfg`` must match to resume."""
+    return common.run_settings(cfg).training_config
 
 
 def leftovers(run_dir: Path) -> list[str]:
@@ -57,10 +56,7 @@ def leftovers(run_dir: Path) -> list[str]:
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory) -> Path:
     """The uninterrupted TINY run that every interrupted-and-resumed run must reproduce."""
-    run_dir = tmp_path_factory.mktemp("reference")
-    out = run_train(run_dir)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return run_dir
+    return finished_run(tmp_path_factory, "reference")
 
 
 # ---------------------------------------------------------------------- configuration
@@ -171,15 +167,15 @@ def test_a_checkpoint_from_another_configuration_is_refused(tmp_path, tiny):
     t = tiny_dicrl.make_trainer(tiny)
     t.train(1)
     path = tmp_path / "checkpoint.pt"
-    config = checkpoints.training_config(compose_train(*TINY))
+    config = training_config(compose_train(*TINY))
     checkpoints.Checkpoints(path, False, config=config).save("D-ICRL", t)
     assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]  # no .tmp left
     # the same configuration resumes, also with a longer training or another threshold
     for same in ([], ["algo.outer_iterations=30", "algo.threshold=0.4", "eval_episodes=5"]):
-        ck = checkpoints.Checkpoints(path, True, config=checkpoints.training_config(
+        ck = checkpoints.Checkpoints(path, True, config=training_config(
             compose_train(*TINY, *same)))
         assert ck.states("D-ICRL")[0]["outer_iteration"] == 1
-    other = checkpoints.training_config(compose_train(*TINY, "seed=1", "algo.steps.alpha_bar=0.05"))
+    other = training_config(compose_train(*TINY, "seed=1", "algo.steps.alpha_bar=0.05"))
     with pytest.raises(ValueError) as info:
         checkpoints.Checkpoints(path, True, config=other)
     msg = str(info.value)
@@ -214,16 +210,16 @@ def test_a_checkpoint_with_pickled_objects_is_refused(tmp_path):
 
 # ---------------------------------------------------------------------- crashes
 def test_a_second_signal_stops_at_once():
-    stop = checkpoints.StopOnSignal()
-    with pytest.raises(checkpoints.Interrupted):  # outside training: at once
+    stop = signals.StopOnSignal()
+    with pytest.raises(signals.Interrupted):  # outside training: at once
         stop._handle(signal.SIGINT, None)
     stop.training = True
     stop._handle(signal.SIGTERM, None)  # first: finish the outer iteration
     assert stop.signum == signal.SIGTERM
-    with pytest.raises(checkpoints.Interrupted) as info:
+    with pytest.raises(signals.Interrupted) as info:
         stop._handle(signal.SIGTERM, None)
     assert info.value.signum == signal.SIGTERM and info.value.saved is None
-    with checkpoints.StopOnSignal() as s:  # installs its handlers and restores the previous
+    with signals.StopOnSignal() as s:  # installs its handlers and restores the previous
         assert signal.getsignal(signal.SIGTERM) == s._handle
     assert signal.getsignal(signal.SIGTERM) != s._handle
 
@@ -297,7 +293,7 @@ def test_c_icrl_trained_in_its_own_job_merges_into_the_run(tmp_path, reference):
     assert res["methods"]["C-ICRL"] == comparable(reference)["methods"]["C-ICRL"]
 
     merged = subprocess.run(
-        [sys.executable, str(ROOT / "experiments" / "checkpoints.py"), "merge",
+        [sys.executable, "-m", "dicrl_torch.runs.checkpoints", "merge",
          str(own / "checkpoint.pt"), str(run / "checkpoint.pt"), "--method", "C-ICRL"],
         capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert merged.returncode == 0, merged.stderr
@@ -373,7 +369,7 @@ def test_greedy_baselines_in_a_job_of_their_own_merge_into_the_run(tmp_path, ref
     assert list(comparable(own)["methods"]) == [
         "ME-greedy", "MCE-greedy", "Experts (ground truth)", "Experts (nominal)"]
     merged = subprocess.run(
-        [sys.executable, str(ROOT / "experiments" / "checkpoints.py"), "merge",
+        [sys.executable, "-m", "dicrl_torch.runs.checkpoints", "merge",
          str(own / "checkpoint.pt"), str(run / "checkpoint.pt"), "--method", "ME-greedy",
          "--method", "MCE-greedy"], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert merged.returncode == 0, merged.stderr
@@ -414,9 +410,12 @@ def test_run_d_icrl_false_is_refused_where_it_cannot_run():
     with pytest.raises(config_checks.ConfigError, match="nothing to run; use comm=simulated"):
         config_checks.check_config(compose_train(*TINY, "comm=distributed",
                                                  "algo.run_d_icrl=false"))
-    with pytest.raises(config_checks.ConfigError, match="starts from D-ICRL's learned reward"):
+    with pytest.raises(config_checks.ConfigError, match="greedy baseline without its reward"):
         config_checks.check_config(compose_train("experiment=table2_quick",
                                                  "algo.run_d_icrl=false"))
+    # without the baseline the arena's C-ICRL alone runs
+    config_checks.check_config(compose_train("experiment=table2_quick", "algo.run_d_icrl=false",
+                                             "baselines=none"))
     with pytest.raises(config_checks.ConfigError, match="algo.run_d_icrl='no' is invalid"):
         config_checks.check_config(compose_train(*TINY, "algo.run_d_icrl=no"))
 
@@ -607,9 +606,9 @@ def test_a_basis_outside_0_d_or_of_the_wrong_width_is_refused(grid_model, case, 
 def recorded(tmp_path_factory):
     """Demonstrations recorded on the single-expert 9x9 layout with T = 8: 3 + 4 files."""
     from dicrl_torch.demos import partition_demonstrations, save_demonstrations
-    from dicrl_torch.demos.experts import expert_solution, sample_trajectories
     from dicrl_torch.envs.grid import GridLayout, TabularGridModel
     from dicrl_torch.features.bases import GoalClosenessRewardBasis
+    from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
     from dicrl_torch.solvers.factored import FactoredSoftBellman
 
     d = tmp_path_factory.mktemp("recorded")
@@ -640,7 +639,7 @@ def test_shard_files_that_do_not_fit_the_run_are_refused_before_any_solve(record
     cfg = compose_train(*ONE_EXPERT, files_override(recorded), *extra)
     config_checks.check_config(cfg)  # the paths are fine; their contents are not
     with pytest.raises(ValueError, match=match):
-        entry.build_problem(cfg)
+        common.grid_task(cfg)
 
 
 def test_shard_files_from_another_start_are_refused(recorded, tmp_path):
@@ -654,7 +653,7 @@ def test_shard_files_from_another_start_are_refused(recorded, tmp_path):
         states=states, actions=d.actions, n_cells=d.n_cells, n_actions=d.n_actions))
     cfg = compose_train(*ONE_EXPERT, files_override([recorded[0], str(moved)]))
     with pytest.raises(ValueError, match=r"moved\.npz': trajectory 2 starts in cells \[40\]"):
-        entry.build_problem(cfg)
+        common.grid_task(cfg)
 
 
 @pytest.mark.parametrize("files,match", [
@@ -705,8 +704,8 @@ def test_a_learner_process_needs_only_its_own_shard_file(recorded, monkeypatch):
     monkeypatch.setenv("RANK", "1")
     cfg = compose_train(*ONE_EXPERT, "comm=distributed", files_override(files))
     config_checks.check_config(cfg)
-    entry.check_shard_contents(cfg)
-    p = entry.build_problem(cfg, rank=1)
+    common.check_shard_contents(cfg)
+    p = common.grid_task(cfg, rank=1)
     assert p.shards[0] is None and p.demos is None
     assert p.experts is None and p.nominal is None  # only rank 0 writes the expert rows
     assert p.shards[1].n_trajectories == 4
@@ -723,13 +722,13 @@ def test_a_checkpoint_of_other_shard_files_is_refused(recorded, tmp_path):
     shard_files keep their configuration as before (older checkpoints stay valid)."""
     import shutil
 
-    sampled = checkpoints.training_config(compose_train(*ONE_EXPERT))
+    sampled = training_config(compose_train(*ONE_EXPERT))
     assert not any(k.startswith("shard_files") for k in sampled)
-    own = checkpoints.training_config(compose_train(*ONE_EXPERT, files_override(recorded)))
+    own = training_config(compose_train(*ONE_EXPERT, files_override(recorded)))
     copy = str(shutil.copy(recorded[1], tmp_path / "copy.npz"))
-    same = checkpoints.training_config(compose_train(*ONE_EXPERT,
+    same = training_config(compose_train(*ONE_EXPERT,
                                                files_override([recorded[0], copy])))
-    swapped = checkpoints.training_config(compose_train(*ONE_EXPERT, "split=[4,3]",
+    swapped = training_config(compose_train(*ONE_EXPERT, "split=[4,3]",
                                                   files_override(recorded[::-1])))
     assert own["shard_files.sha256"] == same["shard_files.sha256"]
     assert own["shard_files.sha256"] != swapped["shard_files.sha256"]

@@ -1,4 +1,4 @@
-"""Tests of the SAC-style constrained solver (dicrl_torch/solvers/sac.py).
+"""Tests of the SAC-style constrained solver (the package dicrl_torch/solvers/sac/).
 
 Kept short (a few thousand env steps in all) and on one CPU thread, so that the numbers
 are reproducible and the file runs in well under a minute.
@@ -18,9 +18,9 @@ from stable_baselines3.common.logger import Logger
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations
 from dicrl_torch.envs.drones import JointDroneEnv, joint_obs_to_state
 from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
-from dicrl_torch.solvers.decomposed_sac import DecomposedSAC
 from dicrl_torch.solvers.sac import (
     BoxScaler,
+    DecomposedSAC,
     FeatureReplayBuffer,
     SACConstrainedSolver,
     SACSolution,

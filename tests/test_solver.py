@@ -13,13 +13,13 @@ from brute_force import dense_solve, joint_transition, marginals
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dicrl_torch.demos.experts import forbidden_state_value, hard_constraint_reward
 from dicrl_torch.envs.grid import DENSE_ENTRY_LIMIT, GridLayout, TabularGridModel
 from dicrl_torch.features.bases import (
     GoalClosenessRewardBasis,
     PerExpertIndicatorCostBasis,
     SharedIndicatorCostBasis,
 )
+from dicrl_torch.solvers.experts import forbidden_state_value, hard_constraint_reward
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 TOL = 1e-5
@@ -101,12 +101,20 @@ def test_temperature_matches_brute_force(temperature):
     check_against_brute(model, reward, [rb()], solver, temperature=temperature)
 
 
-def test_hard_max_dp_with_masks_matches_brute_force():
+def masked_game(horizon: int, gamma: float, scale: float = 1.0):
+    """``(layout, model, reward)`` of a 3x3 two-expert grid with an obstacle in the centre
+    and NE forbidden: the true reward (times ``scale``) plus the hard-constraint mask."""
     layout = GridLayout(size=3, starts=((0, 2), (2, 0)), goals=((2, 2), (0, 0)),
                         obstacles=((1, 1),), forbidden_actions=("NE",))
-    model = TabularGridModel(layout=layout, horizon=4, gamma=0.9)
+    model = TabularGridModel(layout=layout, horizon=horizon, gamma=gamma)
     rb = GoalClosenessRewardBasis(model)
-    reward = rb().weighted(rb.true_weights()) + hard_constraint_reward(model, layout)
+    reward = (rb().weighted(rb.true_weights()).scale(scale)
+              + hard_constraint_reward(model, layout))
+    return layout, model, reward
+
+
+def test_hard_max_dp_with_masks_matches_brute_force():
+    layout, model, reward = masked_game(horizon=4, gamma=0.9)
     terminal = forbidden_state_value(model, layout)
     sol = FactoredSoftBellman(model=model, dtype=torch.float64).solve(
         reward, temperature=0.0, forward=False, terminal_value=terminal)
@@ -124,11 +132,7 @@ def test_hard_max_dp_with_masks_matches_brute_force():
 
 
 def test_soft_solver_with_masks_keeps_forbidden_mass_zero():
-    layout = GridLayout(size=3, starts=((0, 2), (2, 0)), goals=((2, 2), (0, 0)),
-                        obstacles=((1, 1),), forbidden_actions=("NE",))
-    model = TabularGridModel(layout=layout, horizon=5, gamma=0.95)
-    rb = GoalClosenessRewardBasis(model)
-    reward = rb().weighted(rb.true_weights()) + hard_constraint_reward(model, layout)
+    layout, model, reward = masked_game(horizon=5, gamma=0.95)
     sol = FactoredSoftBellman(model=model, dtype=torch.float64).solve(reward)
     occ = sol.local_occupancy
     center = layout.cell((1, 1))
@@ -218,12 +222,7 @@ def test_bad_inputs_are_refused():
 def test_float32_scale_warning_reads_the_finite_values(scale):
     """Forbidden states hold V = -inf; the float32 scale check looks past them and warns
     with the largest finite |V|, exactly when that passes the limit."""
-    layout = GridLayout(size=3, starts=((0, 2), (2, 0)), goals=((2, 2), (0, 0)),
-                        obstacles=((1, 1),), forbidden_actions=("NE",))
-    model = TabularGridModel(layout=layout, horizon=4, gamma=0.9)
-    rb = GoalClosenessRewardBasis(model)
-    reward = (rb().weighted(rb.true_weights()).scale(scale)
-              + hard_constraint_reward(model, layout))
+    layout, model, reward = masked_game(horizon=4, gamma=0.9, scale=scale)
     terminal = forbidden_state_value(model, layout)
     solver = FactoredSoftBellman(model=model, dtype=torch.float32)
     with warnings.catch_warnings(record=True) as caught:

@@ -9,18 +9,11 @@ import sys
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-from tiny_train import TINY, TRAIN
+from tiny_train import TINY, TRAIN, compose_train
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ROOT / "configs"
 PAPER_ORDER = ["D-ICRL", "C-ICRL", "ME-greedy", "MCE-greedy", "Experts (ground truth)",
                "Experts (nominal)"]
-
-
-def compose_train(*overrides: str):
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return compose(config_name="train", overrides=list(overrides))
 
 
 @pytest.mark.parametrize("experiment,n_experts", [("table1", 3), ("table1_small", 2)])
@@ -85,7 +78,7 @@ def test_tiny_run_with_baselines_has_the_paper_rows(tmp_path):
 @pytest.mark.slow  # ~12 min on 2 cores
 @pytest.mark.timeout(2400)
 def test_table1_small_must_shows(tmp_path):
-    """experiment=table1_small end to end: the claims of Table 1 that the README reports
+    """experiment=table1_small end to end: the claims of Table 1 that docs/table1.md reports
     for it (D-ICRL imitates as well as C-ICRL, with fewer false constraints than either
     greedy baseline, and almost never violates; the nominal experts almost always do)."""
     out = subprocess.run(

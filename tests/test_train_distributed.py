@@ -69,10 +69,7 @@ def assert_same_results(run_dir: Path, reference: Path) -> None:
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory) -> Path:
     """The reference: every learner in one process (comm=simulated, the default)."""
-    run_dir = tmp_path_factory.mktemp("simulated")
-    out = run_train(run_dir)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return run_dir
+    return tiny_train.finished_run(tmp_path_factory, "simulated", run=run_train)
 
 
 @pytest.fixture(scope="module")

@@ -9,9 +9,9 @@ import torch
 from dicrl_torch.algos.dicrl import DICRL, StepSizes
 from dicrl_torch.comm import CompleteSchedule, SimulatedCommunicator, TimeVaryingSchedule
 from dicrl_torch.demos import partition_demonstrations
-from dicrl_torch.demos.experts import expert_solution, sample_trajectories
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel
 from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
+from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 SPLIT = [2, 3, 5]

@@ -1,4 +1,4 @@
-"""D-ICRL: the distributed bi-level learner (paper Algorithms 1–2, DESIGN §5).
+"""D-ICRL: the distributed bi-level learner (paper Algorithms 1–2, docs/design.md §5).
 
 Every learner ``v`` holds ``ω_c^[v] ∈ [0, 1]^d``, a gradient tracker and, for each
 learner ``u``'s inner process, its own copy ``η^[v](ω_c^[u]) = [ω_r, λ]``. State is
@@ -34,11 +34,12 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import torch
 
+from dicrl_torch.algos.callbacks import TrainerCallback
 from dicrl_torch.algos.icrl import dual_gradient, local_gradient
 from dicrl_torch.algos.models import LearnerModel, ModelSolution, TabularLearnerModel
 from dicrl_torch.comm.graphs import MixingSchedule, check_inner_schedule, check_outer_schedule
@@ -132,11 +133,15 @@ class DICRL:
         lsca_curvature: ρ of the LSCA surrogate (1 in the paper).
         prune_accrued: zero features the learner's own demonstrations accrue.
         merge_identical_inner: compute bit-identical inner processes once (the results
-            are the same either way; tested).
+            are the same either way; tested). Only exact for a stateless learner model:
+            a stateful one (SAC, ``learner_model.stateful``) trains its solvers inside
+            every inner process, so merging would silently skip training updates, and
+            it is never merged.
         inner_method: ``"paper"`` (Algorithm 2) or ``"gradient_tracking"`` (constant
             ``inner_step``, see the module docstring).
-        logger: receives ``inner/`` scalars of each learner's own inner process (step =
-            outer iteration · K + k); ``run_name(v)`` names learner v's run.
+        callbacks: :class:`~dicrl_torch.algos.callbacks.TrainerCallback` s called during
+            :meth:`train` (logging, checkpoints, evaluation, stopping), before those
+            given to :meth:`train` itself.
         init_cost_weights: ``[N_L, d]`` or a scalar; init_reward_weights ``[l_r]`` or
             scalar; init_multiplier λ(0).
     """
@@ -153,8 +158,8 @@ class DICRL:
                  init_reward_weights: float | torch.Tensor = 0.0,
                  init_multiplier: float = -1.0, progress: bool = False,
                  merge_identical_inner: bool = True, inner_method: str = "paper",
-                 inner_step: float = 0.01, logger=None,
-                 run_name: Callable[[int], str] = lambda v: f"learner{v}") -> None:
+                 inner_step: float = 0.01,
+                 callbacks: Sequence[TrainerCallback] = ()) -> None:
         self.comm = communicator
         N_L = communicator.n_learners
         local = communicator.local_ids
@@ -189,7 +194,8 @@ class DICRL:
         if not (inner_step > 0 and math.isfinite(inner_step)):
             raise ValueError(f"inner_step must be a positive number, got {inner_step}.")
         self.inner_method, self.inner_step = inner_method, float(inner_step)
-        self.logger, self.run_name = logger, run_name
+        self.callbacks = list(callbacks)
+        self._active: list[TrainerCallback] = []  # during train(): these and its own
         self._log_rows: list[int] = []  # local learners whose own inner process runs now
         self._process = 0  # the learner whose ω_c the running inner process is for
         if inner_steps < 2:
@@ -201,7 +207,8 @@ class DICRL:
         self.inner_schedule, self.outer_schedule = inner_schedule, outer_schedule
         self.steps, self.K = steps, inner_steps
         self.rho, self.prune_accrued = float(lsca_curvature), prune_accrued
-        self.progress, self.merge = progress, merge_identical_inner
+        self.progress = progress
+        self.merge = merge_identical_inner and not getattr(learner_model, "stateful", False)
         self.n_learners, self.local = N_L, local
         d, lr = learner_model.cost_dim, learner_model.reward_dim
         self.accrued = torch.stack([s.cost_accrual > 0 for s in self.stats])  # [n, d]
@@ -275,14 +282,10 @@ class DICRL:
         grads = torch.stack([
             dual_gradient(self.solve(i, eta[i], cost_weights), st, cost_weights)
             for i, st in enumerate(self.stats)])
-        if self.logger is not None:
-            step = self.state.outer_iteration * self.K + k
-            for i in self._log_rows:
-                run = self.run_name(self.local[i])
-                self.logger.scalar(run, "inner/dual_gradient_norm", float(grads[i].norm()), step)
-                self.logger.scalar(run, "inner/multiplier", float(eta[i, -1]), step)
-                self.logger.scalar(run, "inner/reward_weight_norm", float(eta[i, :-1].norm()),
-                                   step)
+        for cb in self._active:
+            cb.on_inner_gradients(self, learners=self._log_rows,
+                                  step=self.state.outer_iteration * self.K + k,
+                                  gradients=grads, eta=eta)
         scaled = self.m[:, None] * grads
         scaled[:, -1] *= self.steps.multiplier_scale
         return scaled
@@ -396,9 +399,20 @@ class DICRL:
         return info
 
     def train(self, outer_iterations: int,
-              callback: Callable[[DICRL, dict], None] | None = None) -> LearnerState:
+              callbacks: Sequence[TrainerCallback] = ()) -> LearnerState:
         """Run outer iterations until ``outer_iterations`` in total (a resumed trainer
-        continues where its checkpoint stopped), with a progress bar."""
+        continues where its checkpoint stopped), with a progress bar.
+
+        Args:
+            callbacks: called after the trainer's own ``callbacks``.
+        """
+        self._active = [*self.callbacks, *callbacks]
+        try:
+            return self._train(outer_iterations)
+        finally:
+            self._active = []
+
+    def _train(self, outer_iterations: int) -> LearnerState:
         if outer_iterations < 1:
             raise ValueError(f"outer_iterations must be >= 1, got {outer_iterations}.")
         start = self.state.outer_iteration
@@ -416,27 +430,37 @@ class DICRL:
             if bar is not None:
                 bar.set_postfix(lam=f"{info['multiplier'][0]:.2f}",
                                 procs=info["inner_processes"])
-            if callback is not None:
-                callback(self, info)
+            for cb in self._active:
+                cb.on_outer_end(self, info)
         return self.state
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
-        """Everything needed to continue bit for bit (tensors, ints, lists only)."""
+        """Everything needed to continue bit for bit (tensors, ints, lists only; a
+        stateful learner model's solvers under ``learner_model``)."""
         st = self.state
-        return {
+        sd = {
             "cost_weights": st.cost_weights, "eta": st.eta, "eta_bar": st.eta_bar,
             "tracker": st.tracker, "last_lga": st.last_lga,
             "outer_iteration": st.outer_iteration, "groups": st.groups,
             "solves": self.solves, "history": self.history,
             "fingerprint": self.fingerprint(),
         }
+        if getattr(self.learner_model, "stateful", False):
+            sd["learner_model"] = self.learner_model.state_dict()
+        return sd
 
     def load_state_dict(self, sd: dict) -> None:
         if sd.get("fingerprint") != self.fingerprint():
             raise ValueError("This checkpoint was written by a differently configured trainer "
                              f"(checkpoint {sd.get('fingerprint')!r}, trainer "
                              f"{self.fingerprint()!r}); resume with the same configuration.")
+        if getattr(self.learner_model, "stateful", False):
+            if "learner_model" not in sd:
+                raise ValueError("This checkpoint holds no state of the learners' solvers, "
+                                 "which this (stateful) learner model needs to continue; "
+                                 "start the run over without resume=true.")
+            self.learner_model.load_state_dict(sd["learner_model"])
         self.state = LearnerState(
             cost_weights=sd["cost_weights"], eta=sd["eta"], eta_bar=sd["eta_bar"],
             tracker=sd["tracker"], last_lga=sd["last_lga"],

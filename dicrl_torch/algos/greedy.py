@@ -19,7 +19,7 @@ values, policies, occupancies and likelihoods (tested).
 feature of C is positive (a feature whose per-expert tables do not vary with the
 action, e.g. a cell or the collision): nothing is scored at the last state, so
 without it the final move could still enter a forbidden cell
-(``dicrl_torch.demos.experts`` does the same for the experts).
+(``dicrl_torch.solvers.experts`` does the same for the experts).
 
 **Candidates.** A feature is a candidate when no demonstration accrues it at any
 ``(s_t, a_t)``, ``t < T``, nor — for state features, which the terminal mask also
@@ -71,9 +71,9 @@ from typing import Any
 import torch
 
 from dicrl_torch.algos.icrl import log_likelihood as causal_log_likelihood
-from dicrl_torch.demos.experts import discounted_feature_sums
+from dicrl_torch.demos.features import discounted_feature_sums
 from dicrl_torch.demos.storage import Demonstrations
-from dicrl_torch.envs.grid import TabularGridModel
+from dicrl_torch.envs.grid import TabularGridModel, encode_joint
 from dicrl_torch.features.bases import FactoredFeatures, FactoredReward, FeatureBasis
 from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
 
@@ -108,19 +108,12 @@ def trajectory_log_likelihood(solution: SoftBellmanSolution, demos: Demonstratio
     N = model.n_experts
     r = sum(reward.local[i][cells[:, :-1, i], acts[:, :, i]].double() for i in range(N))
     if reward.joint is not None:
-        r = r + reward.joint.double()[_flat(cells[:, :-1], model.n_cells)]
+        r = r + reward.joint.double()[encode_joint(cells[:, :-1], model.n_cells)]
     disc = gamma ** torch.arange(T, dtype=torch.float64)
     ret = (r * disc).sum(1)  # [m]
     v_T = solution.V[T].double().cpu()[tuple(cells[:, T].t())]  # [m]
     total = ret + gamma**T * v_T - solution.log_partition
     return float(total.sum()) / solution.temperature
-
-
-def _flat(cells: torch.Tensor, n_cells: int) -> torch.Tensor:
-    flat = torch.zeros(cells.shape[:-1], dtype=torch.int64)
-    for i in range(cells.shape[-1]):
-        flat = flat * n_cells + cells[..., i]
-    return flat
 
 
 def _check_demos(model: TabularGridModel, demos: Demonstrations) -> None:

@@ -27,8 +27,9 @@ from dataclasses import dataclass
 
 import torch
 
-from dicrl_torch.demos.experts import discounted_feature_sums
+from dicrl_torch.demos.features import discounted_feature_sums
 from dicrl_torch.demos.storage import Demonstrations
+from dicrl_torch.envs.grid import encode_joint
 from dicrl_torch.features.bases import FactoredFeatures, FactoredReward
 from dicrl_torch.solvers.factored import SoftBellmanSolution
 
@@ -88,12 +89,11 @@ def local_gradient(solution, stats: LocalStatistics, multiplier: float) -> torch
 def log_likelihood(solution: SoftBellmanSolution, demos: Demonstrations) -> float:
     """``Σ_ζ Σ_t γ^t ln π_t(a_t | s_t)`` of ``demos`` under the solution's policy."""
     model = solution.solver.model
-    A1, N = model.n_actions, model.n_experts
-    digits = A1 ** torch.arange(N - 1, -1, -1)
+    A1 = model.n_actions
     total = 0.0
     for t in range(demos.horizon):
         cells = torch.tensor(demos.states[:, t])
-        joint = (torch.tensor(demos.actions[:, t]) * digits).sum(1)
+        joint = encode_joint(torch.tensor(demos.actions[:, t]), A1)
         logp = torch.log_softmax(solution.q_values_at(t, cells).double(), 1)
         total += model.gamma**t * float(logp.gather(1, joint.unsqueeze(1)).sum())
     return total

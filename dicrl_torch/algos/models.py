@@ -7,24 +7,32 @@ implementations ship:
 
 - :class:`TabularLearnerModel`: the exact factored soft-Bellman solver of the grid
   world (deterministic, stateless: every learner shares it).
-- :class:`dicrl_torch.solvers.sac.SACLearnerModel`: one SAC-style solver per local
-  learner for the continuous drone arena (stochastic estimates from rollouts,
-  warm-started across calls, so each learner keeps its own).
+- :class:`SACLearnerModel`: one SAC-style solver
+  (:class:`~dicrl_torch.solvers.sac.SACConstrainedSolver`) per local learner for the
+  continuous drone arena (stochastic estimates from rollouts, warm-started across calls,
+  so each learner keeps its own, and its state is part of a checkpoint).
 
 A new environment needs only a new ``LearnerModel``; the trainer does not change.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
+import numpy as np
 import torch
 
 from dicrl_torch.algos.icrl import LocalStatistics, log_likelihood, model_reward
 from dicrl_torch.features.bases import FeatureBasis
 from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
+
+if TYPE_CHECKING:  # imported where used: the drone arena and SB3 are slow to import and
+    # the grid world never needs them
+    from dicrl_torch.demos.drone_demos import DroneDemonstrations
+    from dicrl_torch.solvers.sac import SACConstrainedSolver, SACSolution
 
 
 @runtime_checkable
@@ -50,6 +58,22 @@ class LearnerModel(Protocol):
 
     reward_dim: int  # l_r
     cost_dim: int  # l_c = d
+    stateful: bool
+    """False when every learner shares one stateless, exact solver (tabular: identical
+    inner processes may be computed once); True when each learner owns a solver whose
+    state changes with every solve (SAC, warm-started)."""
+
+    def inner_solver(self, learner: int) -> Any:
+        """The solver learner ``learner`` solves with (the shared one when stateless)."""
+        ...
+
+    def state_dict(self) -> dict:
+        """The solvers' state, as tensors and plain values (empty when stateless)."""
+        ...
+
+    def load_state_dict(self, sd: dict) -> None:
+        """Continue from a :meth:`state_dict`."""
+        ...
 
     def statistics(self, demos: Any) -> LocalStatistics:
         """The learner's private μ̂_r ``[l_r]``, cost accrual ``[l_c]`` and count m."""
@@ -93,14 +117,22 @@ class TabularSolution:
     def mu_c(self) -> torch.Tensor:
         return self.soft_bellman.feature_expectation(self.cost_features)
 
+    @property
+    def policy_at(self) -> Callable[..., torch.Tensor]:
+        """The policy ``(t, cells) -> [B, A1^N]`` (:meth:`SoftBellmanSolution.policy_at`)."""
+        return self.soft_bellman.policy_at
+
 
 class TabularLearnerModel:
-    """The grid world's learner model: the exact factored soft-Bellman solver.
+    """The grid world's learner model: the exact factored soft-Bellman solver, shared
+    by every learner (stateless: a solve depends only on its arguments).
 
     Args:
         solver: the solver of the learners' (nominal) model.
         reward_basis, cost_basis: feature bases ``φ_r`` and ``φ_c``.
     """
+
+    stateful = False
 
     def __init__(self, *, solver: FactoredSoftBellman, reward_basis: FeatureBasis,
                  cost_basis: FeatureBasis) -> None:
@@ -127,6 +159,133 @@ class TabularLearnerModel:
         sol = self.solver.solve(self._reward(eta, cost_weights), forward=False)
         return log_likelihood(sol, demos)
 
+    def inner_solver(self, learner: int) -> FactoredSoftBellman:
+        """The shared solver (every learner's)."""
+        return self.solver
+
+    def state_dict(self) -> dict:
+        """Empty: the exact solver has no state."""
+        return {}
+
+    def load_state_dict(self, sd: dict) -> None:
+        """Nothing to load; ``sd`` must be the empty :meth:`state_dict`."""
+        if sd:
+            raise ValueError(f"A tabular learner model has no state, but this one holds "
+                             f"{sorted(sd)[:4]} (a stateful model's?); resume with the "
+                             f"learner model that saved it.")
+
     def describe(self) -> str:
         m = self.model
         return f"T={m.horizon} S1={m.n_cells} N={m.n_experts}"
+
+
+class SACLearnerModel:
+    """The drone learners' model: one :class:`~dicrl_torch.solvers.sac.SACConstrainedSolver`
+    per local learner (stateful).
+
+    Each local learner owns one solver: SAC is warm-started across calls, so a solver's
+    state is that learner's policy. Every :meth:`solve` continues training for
+    ``timesteps`` env steps on the new ``(η, ω_c)`` and then estimates ``μ_r``, ``μ_c``
+    from ``n_eval_episodes`` rollouts; the estimates are noisy, which the trainer's
+    diminishing steps average out.
+
+    Args:
+        solvers: one solver per local learner (same bases, discount and game).
+        timesteps: env steps of SAC training per solve (per inner step).
+        n_eval_episodes: rollouts per estimate (default each solver's own).
+    """
+
+    stateful = True
+
+    def __init__(self, *, solvers: Sequence[SACConstrainedSolver], timesteps: int,
+                 n_eval_episodes: int | None = None) -> None:
+        from dicrl_torch.solvers.sac import SACConstrainedSolver
+
+        solvers = list(solvers)
+        if not solvers or not all(isinstance(s, SACConstrainedSolver) for s in solvers):
+            raise ValueError("solvers must be a non-empty list of SACConstrainedSolver, one "
+                             "per local learner.")
+        first = solvers[0]
+        for s in solvers[1:]:
+            if (s.l_r, s.l_c, s.gamma, s.absorbing) != (first.l_r, first.l_c, first.gamma,
+                                                         first.absorbing):
+                raise ValueError("All learners' solvers must share the feature bases' "
+                                 "widths, gamma and the absorbing convention.")
+        if not _is_int(timesteps) or timesteps < 0:
+            raise ValueError(f"timesteps must be an int >= 0, got {timesteps!r}.")
+        if n_eval_episodes is not None and (not _is_int(n_eval_episodes)
+                                            or n_eval_episodes < 1):
+            raise ValueError(f"n_eval_episodes must be a positive int, got {n_eval_episodes!r}.")
+        self.solvers, self.timesteps, self.n_eval_episodes = solvers, int(timesteps), \
+            n_eval_episodes
+        self.reward_dim, self.cost_dim = first.l_r, first.l_c
+        self.dtype = None
+
+    def inner_solver(self, learner: int) -> SACConstrainedSolver:
+        """Learner ``learner``'s own solver (its policy is the solver's state)."""
+        if not _is_int(learner) or not 0 <= learner < len(self.solvers):
+            raise ValueError(f"learner {learner} has no solver: this model holds "
+                             f"{len(self.solvers)}; give one solver per local learner.")
+        return self.solvers[learner]
+
+    def statistics(self, demos: DroneDemonstrations) -> LocalStatistics:
+        """``μ̂_r``, the cost accrual and ``m`` of a learner's pairs, counted as the
+        solver counts its rollouts (next-state features, absorbing end)."""
+        from dicrl_torch.demos.drone_demos import DroneDemonstrations
+        from dicrl_torch.solvers.sac import discounted_demo_feature_sums
+
+        s = self.solvers[0]
+        if not isinstance(demos, DroneDemonstrations) or demos.n_pairs < 1:
+            raise ValueError("A drone learner needs DroneDemonstrations with at least one "
+                             "pair.")
+
+        def mean(basis: torch.nn.Module) -> torch.Tensor:
+            return discounted_demo_feature_sums(demos, basis, s.gamma,
+                                                absorbing=s.absorbing).mean(0)
+
+        return LocalStatistics(m=demos.n_pairs, mu_r_hat=mean(s.reward_basis),
+                               cost_accrual=mean(s.cost_basis))
+
+    def solve(self, learner: int, eta: torch.Tensor, cost_weights: torch.Tensor
+              ) -> SACSolution:
+        return self.inner_solver(learner).solve(eta, cost_weights, self.timesteps,
+                                                n_eval_episodes=self.n_eval_episodes)
+
+    def log_likelihood(self, learner: int, eta: torch.Tensor, cost_weights: torch.Tensor,
+                       demos: DroneDemonstrations) -> float:
+        """Trains on ``(η, ω_c)`` for ``timesteps`` first (the policy IS the solver's
+        state), then scores ``demos`` under it."""
+        solver = self.inner_solver(learner)
+        solver.solve(eta, cost_weights, self.timesteps, n_eval_episodes=1)
+        return solver.log_likelihood(demos)
+
+    def state_dict(self) -> dict:
+        """Every learner's solver state (:meth:`SACConstrainedSolver.state_dict`), in
+        learner order: tensors and plain values only."""
+        return {"solvers": [s.state_dict() for s in self.solvers]}
+
+    def load_state_dict(self, sd: dict) -> None:
+        """Continue every learner's solver from a :meth:`state_dict` (all are checked
+        before any is changed)."""
+        states = sd.get("solvers") if isinstance(sd, dict) else None
+        if not isinstance(states, list) or len(states) != len(self.solvers):
+            found = len(states) if isinstance(states, list) else "no"
+            raise ValueError(f"This SAC learner-model state holds {found} solver states, the "
+                             f"model {len(self.solvers)} solvers (one per local learner); "
+                             f"resume with the same learners.")
+        for k, (solver, state) in enumerate(zip(self.solvers, states, strict=True)):
+            try:
+                solver.check_state(state)
+            except ValueError as e:
+                raise ValueError(f"learner {k}'s solver: {e}") from None
+        for solver, state in zip(self.solvers, states, strict=True):
+            solver.load_state_dict(state)
+
+    def describe(self) -> str:
+        s = self.solvers[0]
+        return (f"SAC x{len(self.solvers)} steps={self.timesteps} gamma={s.gamma} "
+                f"ent={s.ent_coef} absorbing={s.absorbing}")
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, int | np.integer) and not isinstance(x, bool)

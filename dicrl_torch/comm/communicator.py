@@ -1,4 +1,4 @@
-"""Communicators: how learners exchange parameter vectors (DESIGN §5).
+"""Communicators: how learners exchange parameter vectors (docs/design.md §5).
 
 A communicator serves the learners that live in this process (``local_ids``); the
 trainer keeps their state stacked along a leading axis. ``mix`` returns, for each
@@ -19,6 +19,20 @@ import torch
 # What may leave a learner: η = [ω_r, λ], ω_c and the gradient trackers (Algorithm 1's,
 # and the optional gradient-tracking inner variant's).
 ALLOWED_FIELDS = ("eta", "cost_weights", "tracker", "inner_tracker")
+# Control values a run coordinates its learner processes with (never learner data): the
+# run directory and id, and which outer iterations each learner has checkpointed.
+CONTROL_FIELDS = ("run_directory", "checkpointed_iterations")
+
+
+def check_control(field: str, value) -> bytes:
+    """``value`` as the JSON bytes :meth:`gather_control` sends; a field not in
+    :data:`CONTROL_FIELDS` or a value JSON cannot hold is refused."""
+    import json
+
+    if field not in CONTROL_FIELDS:
+        raise ValueError(f"Control field {field!r} is not one a run exchanges; allowed: "
+                         f"{CONTROL_FIELDS}.")
+    return json.dumps(value).encode()
 
 
 @dataclass
@@ -65,6 +79,14 @@ class SimulatedCommunicator:
     def mix(self, values: torch.Tensor, W: torch.Tensor, field: str) -> torch.Tensor:
         """Consensus step: ``[n_local, ...]`` -> ``[n_local, ...]`` with ``W`` ``[N_L, N_L]``."""
         return fixed_order_mix(self.all_gather(values, field), W, self.local_ids)
+
+    def gather_control(self, value, field: str) -> list:
+        """Every learner's control ``value`` (JSON-able), in learner order: here all
+        learners share one process, hence one value. Recorded like every message."""
+        data = check_control(field, value)
+        if self.record:
+            self.messages.append(MessageRecord(field, (len(data),), self.local_ids[0]))
+        return [value] * self.n_learners
 
     def close(self) -> None:
         pass

@@ -1,4 +1,4 @@
-"""torch.distributed communicator: one process per learner (DESIGN §5).
+"""torch.distributed communicator: one process per learner (docs/design.md §5).
 
 :class:`DistributedCommunicator` has the interface of
 :class:`~dicrl_torch.comm.communicator.SimulatedCommunicator` and produces the same
@@ -37,7 +37,12 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from dicrl_torch.comm.communicator import ALLOWED_FIELDS, MessageRecord, fixed_order_mix
+from dicrl_torch.comm.communicator import (
+    ALLOWED_FIELDS,
+    MessageRecord,
+    check_control,
+    fixed_order_mix,
+)
 
 _FIX = ("A learner process died or never joined; check its log, then rerun, resuming "
         "from the last checkpoint.")
@@ -198,6 +203,27 @@ class DistributedCommunicator:
             raise ValueError(f"W must be [{self.n_learners}, {self.n_learners}], got "
                              f"{tuple(W.shape)}.")
         return fixed_order_mix(self.all_gather(values, field), W, self.local_ids)
+
+    def gather_control(self, value, field: str) -> list:
+        """Every learner's control ``value`` (JSON-able: the run directory, checkpointed
+        iterations), in rank order. Sent as JSON bytes in a tensor, never pickled, and
+        recorded in :attr:`messages` like the parameter vectors.
+
+        Raises:
+            ValueError: ``field`` is not a control field.
+            PeerFailureError: another learner died or timed out.
+        """
+        import json
+
+        data = check_control(field, value)
+        if self.record:
+            self.messages.append(MessageRecord(field, (len(data),), self.rank))
+        size = self._gather(torch.tensor([[len(data)]], dtype=torch.int64), f"{field!r}")
+        padded = torch.zeros(1, int(size.max()), dtype=torch.uint8)
+        padded[0, :len(data)] = torch.frombuffer(bytearray(data), dtype=torch.uint8)
+        rows = self._gather(padded, f"{field!r}")
+        return [json.loads(bytes(rows[r, :int(size[r, 0])].tolist()))
+                for r in range(self.n_learners)]
 
     def barrier(self) -> None:
         """Wait for every learner (or raise :class:`PeerFailureError` after ``timeout_s``)."""

@@ -473,15 +473,3 @@ def check_outer_schedule(
     eps, _ = _check_steps(schedule, horizon, epsilon, atol, outer=True)
     return eps
 
-
-__all__ = [
-    "CompleteSchedule",
-    "DirectedCycleSchedule",
-    "GraphAssumptionError",
-    "MatrixSchedule",
-    "MixingSchedule",
-    "RingSchedule",
-    "TimeVaryingSchedule",
-    "check_inner_schedule",
-    "check_outer_schedule",
-]

@@ -1,5 +1,7 @@
-"""Expert demonstrations of the drone arena (DESIGN §7, paper §6.2): planner, storage,
-partitioning.
+"""Expert demonstrations of the drone arena (docs/design.md §7, paper §6.2): planner and
+storage (the pairs are split over learners by
+:func:`~dicrl_torch.demos.partition.partition_demonstrations`; the paper's split is
+:data:`PAPER_DRONE_SPLIT`).
 
 The experts are a planner, imperfect and human-like like the paper's hand-flown Gazebo
 pairs. For each pair it draws, per drone, the side on which the drone passes the central
@@ -26,9 +28,9 @@ and the fix (the house style of :mod:`dicrl_torch.demos.storage`).
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -36,13 +38,11 @@ from numpy.typing import ArrayLike
 from dicrl_torch.demos.npz import (
     atomic_savez,
     check_expected,
-    check_version,
     open_archive,
     read_field,
     read_scalar,
-    shard_indices,
-    subset_indices,
 )
+from dicrl_torch.demos.trajectories import TrajectoryArrays
 from dicrl_torch.envs.drones import (
     AGENTS,
     DOORS,
@@ -72,7 +72,7 @@ CRUISE_SPEED: tuple[float, float] = (1.0, 1.2)
 """Range of each drone's cruise speed along its path (m/s), below ``max_speed`` so
 the controller keeps headroom to correct tracking errors. Demonstrations at 0.6-0.85 m/s
 made the learned reward weights shrink to match them (a policy too slow to reach the
-door in an episode; README)."""
+door in an episode; docs/drones.md, "Beside the paper, and what decides SR")."""
 HESITATION: tuple[float, float] = (0.0, 0.3)
 """Range of the extra wait (s) of the yielding drone, on top of the shortest safe one."""
 KP: float = 1.5
@@ -217,8 +217,10 @@ def _frozen(a: ArrayLike, dtype: type) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False, repr=False)
-class DroneDemonstrations:
-    """Demonstrated pairs of drone trajectories, validated on construction.
+class DroneDemonstrations(TrajectoryArrays):
+    """Demonstrated pairs of drone trajectories, validated on construction (a
+    :class:`~dicrl_torch.demos.trajectories.Trajectories` whose trajectories are the
+    pairs; equal by content).
 
     The arrays are copied read-only (float64, int64), so the object is immutable.
 
@@ -236,6 +238,9 @@ class DroneDemonstrations:
     dt: float
     seeds: np.ndarray | None = None
 
+    per_trajectory: ClassVar[tuple[str, ...]] = ("states", "actions", "lengths", "seeds")
+    unit: ClassVar[str] = "pairs"
+
     def __post_init__(self) -> None:
         validate_drone_arrays(self.states, self.actions, self.lengths, self.dt, self.seeds,
                               source="DroneDemonstrations")
@@ -248,13 +253,8 @@ class DroneDemonstrations:
 
     @property
     def n_pairs(self) -> int:
-        """``m``."""
-        return self.states.shape[0]
-
-    @property
-    def horizon(self) -> int:
-        """``T``, the padded number of steps."""
-        return self.actions.shape[1]
+        """``m``, the number of pairs (:attr:`n_trajectories`)."""
+        return self.n_trajectories
 
     def drone_lengths(self) -> np.ndarray:
         """``[m, 2]`` int64: the step at which each drone reached its door (its last
@@ -262,30 +262,6 @@ class DroneDemonstrations:
         at = in_own_door(self.states[:, 1:, :, :2])  # [m, T, 2]
         first = np.where(at.any(1), at.argmax(1) + 1, self.lengths[:, None])
         return np.minimum(first, self.lengths[:, None]).astype(np.int64)
-
-    def subset(self, indices: ArrayLike) -> DroneDemonstrations:
-        """The pairs at ``indices`` (1-D ints, in that order, or a ``[m]`` bool mask) as
-        new demonstrations."""
-        idx = subset_indices(indices, self.n_pairs)
-        return DroneDemonstrations(
-            states=self.states[idx], actions=self.actions[idx], lengths=self.lengths[idx],
-            dt=self.dt, seeds=None if self.seeds is None else self.seeds[idx],
-        )
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, DroneDemonstrations):
-            return NotImplemented
-        seeds_eq = (self.seeds is None and other.seeds is None) or (
-            self.seeds is not None and other.seeds is not None
-            and np.array_equal(self.seeds, other.seeds))
-        return (
-            self.dt == other.dt and seeds_eq
-            and np.array_equal(self.states, other.states)
-            and np.array_equal(self.actions, other.actions)
-            and np.array_equal(self.lengths, other.lengths)
-        )
-
-    __hash__ = None  # type: ignore[assignment]  # mutable-by-content arrays: unhashable
 
     def __repr__(self) -> str:
         return f"DroneDemonstrations(m={self.n_pairs}, T={self.horizon}, dt={self.dt})"
@@ -334,10 +310,10 @@ def load_drone_demonstrations(
     path = Path(path)
     source = f"drone demonstrations file '{path}'"
     fix = "save_drone_demonstrations"
-    with open_archive(path, source=source, required=FIELDS, optional=OPTIONAL_FIELDS, fix=fix,
+    with open_archive(path, source=source, required=FIELDS, optional=OPTIONAL_FIELDS,
+                      version=FORMAT_VERSION, fix=fix,
                       generate="Generate the demonstrations with make_drone_demonstrations "
                                "first") as archive:
-        check_version(archive, FORMAT_VERSION, source, fix)
         file_dt = read_scalar(archive, "dt", source, fix, kind=float)
         arrays = {f: read_field(archive, f, source, fix) for f in ARRAY_FIELDS}
         seeds = read_field(archive, "seeds", source, fix) if "seeds" in archive.files else None
@@ -346,27 +322,6 @@ def load_drone_demonstrations(
     check_expected(source, {"n_pairs": arrays["states"].shape[0], "dt": file_dt},
                    {"n_pairs": n_pairs, "dt": dt})
     return DroneDemonstrations(dt=file_dt, seeds=seeds, **arrays)
-
-
-def partition_drone_demonstrations(
-    demos: DroneDemonstrations,
-    sizes: Sequence[int] = PAPER_DRONE_SPLIT,
-    *,
-    rng: np.random.Generator | None = None,
-) -> list[DroneDemonstrations]:
-    """Split the ``m`` pairs into consecutive, disjoint shards (default 4/5).
-
-    Args:
-        demos: the pairs.
-        sizes: shard sizes, one per learner, positive and summing to ``m``.
-        rng: when given, the pairs are shuffled with it first.
-
-    Returns:
-        ``len(sizes)`` demonstrations; shard ``k`` has ``sizes[k]`` pairs.
-    """
-    if not isinstance(demos, DroneDemonstrations):
-        raise TypeError(f"demos must be a DroneDemonstrations, got {type(demos).__name__}.")
-    return [demos.subset(idx) for idx in shard_indices(demos.n_pairs, sizes, rng, "pairs")]
 
 
 # ============================================================================ planner

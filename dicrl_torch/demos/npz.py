@@ -9,7 +9,6 @@ function that writes a good file (e.g. ``"save_demonstrations"``).
 from __future__ import annotations
 
 import os
-import uuid
 import zipfile
 import zlib
 from collections.abc import Iterator, Mapping, Sequence
@@ -18,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dicrl_torch.io import atomic_write
+
 # What np.load / zipfile / zlib raise on a damaged archive or member.
 READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, KeyError)
 
@@ -25,45 +26,33 @@ READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, Ke
 def atomic_savez(path: str | os.PathLike[str], fields: Mapping[str, np.ndarray]) -> Path:
     """Write ``fields`` to ``path`` as a compressed ``.npz``, atomically.
 
-    The archive goes to a temporary file next to ``path`` and is moved into place with
-    ``os.replace``, so a crash never leaves a half-written file under ``path``. ``path``
-    is used as given (no ``.npz`` suffix is appended); parent directories are created.
+    Through :func:`dicrl_torch.io.atomic_write`: a crash never leaves a half-written file
+    under ``path``. ``path`` is used as given (no ``.npz`` suffix is appended).
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    # os.open with mode 0o666 lets the umask decide the final permissions, as for a
-    # plain open(); O_EXCL guards against clobbering anything.
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            # A file object, not a name: np.savez would otherwise append ".npz".
-            np.savez_compressed(f, **fields)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    # A file object, not a name: np.savez would otherwise append ".npz".
+    return atomic_write(path, lambda f: np.savez_compressed(f, **fields))
 
 
 @contextmanager
 def open_archive(path: Path, *, source: str, required: Sequence[str],
-                 optional: Sequence[str] = (), fix: str, generate: str
+                 optional: Sequence[str] = (), version: int, fix: str, generate: str
                  ) -> Iterator[np.lib.npyio.NpzFile]:
-    """Open ``path`` as an ``.npz`` holding ``required`` (and maybe ``optional``) fields.
+    """Open ``path`` as an ``.npz`` of layout ``version`` holding ``required`` (and maybe
+    ``optional``) fields; ``format_version`` is read before any other field
+    (:func:`check_version`).
 
     Args:
         path: the file.
         source: how messages name it, e.g. ``"demonstrations file 'x.npz'"``.
         required, optional: the schema's field names.
+        version: the ``format_version`` this code reads.
         fix: the function that writes a good file.
         generate: what to do when the file is missing.
 
     Raises:
         FileNotFoundError: ``path`` is not a file.
-        ValueError: not an ``.npz`` archive, or missing / unknown fields.
+        ValueError: not an ``.npz`` archive, missing / unknown fields, or another
+            ``format_version``.
     """
     if not path.is_file():
         raise FileNotFoundError(f"No {source}: it does not exist or is not a file. "
@@ -92,6 +81,7 @@ def open_archive(path: Path, *, source: str, required: Sequence[str],
             if unknown:
                 raise ValueError(f"{source}: unknown field(s) {unknown}; the file holds only "
                                  f"{list(required) + list(optional)}. Re-save it with {fix}.")
+            check_version(archive, version, source, fix)
             yield archive
 
 

@@ -1,4 +1,4 @@
-"""Expert demonstrations in memory and on disk (DESIGN §2, §3).
+"""Expert demonstrations in memory and on disk (docs/design.md §2, §3).
 
 A set of ``m`` demonstrations of ``N`` experts over a horizon ``T`` is two integer
 arrays: the per-expert cells visited, ``states [m, T+1, N]``, and the per-expert
@@ -20,12 +20,11 @@ from numpy.typing import ArrayLike
 from dicrl_torch.demos.npz import (
     atomic_savez,
     check_expected,
-    check_version,
     open_archive,
     read_field,
     read_scalar,
-    subset_indices,
 )
+from dicrl_torch.demos.trajectories import TrajectoryArrays
 
 FORMAT_VERSION = 1
 ARRAY_FIELDS: tuple[str, ...] = ("states", "actions")
@@ -118,8 +117,9 @@ def validate_arrays(
 
 
 @dataclass(frozen=True, eq=False, repr=False)
-class Demonstrations:
-    """Trajectories of ``N`` experts, validated on construction.
+class Demonstrations(TrajectoryArrays):
+    """Trajectories of ``N`` experts, validated on construction (a
+    :class:`~dicrl_torch.demos.trajectories.Trajectories`; equal by content).
 
     The arrays are copied to read-only int64 so the object really is immutable.
 
@@ -148,39 +148,9 @@ class Demonstrations:
         object.__setattr__(self, "n_actions", int(self.n_actions))
 
     @property
-    def n_trajectories(self) -> int:
-        """``m``."""
-        return self.states.shape[0]
-
-    @property
-    def horizon(self) -> int:
-        """``T``, the number of decisions per trajectory."""
-        return self.actions.shape[1]
-
-    @property
     def n_experts(self) -> int:
         """``N``."""
         return self.states.shape[2]
-
-    def subset(self, indices: ArrayLike) -> Demonstrations:
-        """The trajectories at ``indices`` (1-D ints, in that order, or a ``[m]`` bool
-        mask) as new demonstrations."""
-        idx = subset_indices(indices, self.n_trajectories)
-        return Demonstrations(
-            states=self.states[idx], actions=self.actions[idx],
-            n_cells=self.n_cells, n_actions=self.n_actions,
-        )
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, Demonstrations):
-            return NotImplemented
-        return (
-            self.n_cells == other.n_cells and self.n_actions == other.n_actions
-            and np.array_equal(self.states, other.states)
-            and np.array_equal(self.actions, other.actions)
-        )
-
-    __hash__ = None  # type: ignore[assignment]  # mutable-by-content arrays: unhashable
 
     def __repr__(self) -> str:
         return (
@@ -235,9 +205,8 @@ def load_demonstrations(
     path = Path(path)
     source = f"demonstrations file '{path}'"
     fix = "save_demonstrations"
-    with open_archive(path, source=source, required=FIELDS, fix=fix,
+    with open_archive(path, source=source, required=FIELDS, version=FORMAT_VERSION, fix=fix,
                       generate="Generate the demonstrations first") as archive:
-        check_version(archive, FORMAT_VERSION, source, fix)
         file_cells = read_scalar(archive, "n_cells", source, fix)
         file_actions = read_scalar(archive, "n_actions", source, fix)
         states = read_field(archive, "states", source, fix)

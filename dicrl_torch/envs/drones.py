@@ -1,4 +1,4 @@
-"""The continuous two-drone arena (DESIGN §7, paper §6.2) as a PettingZoo ``ParallelEnv``.
+"""The continuous two-drone arena (docs/design.md §7, paper §6.2) as a PettingZoo ``ParallelEnv``.
 
 Geometry (metres, ``x`` to the right, ``y`` up, origin at the bottom-left corner)::
 
@@ -32,7 +32,7 @@ Gaussian noise drawn from the env's seeded generator::
 
 The walls are part of the dynamics, known to every learner like the grid world's edge
 (a move off the grid stays): a drone pushing into a wall stops against it. The true
-constraints (violations) are exactly what the cost features describe (DESIGN §7):
+constraints (violations) are exactly what the cost features describe (docs/design.md §7):
 being inside an obstacle box, and the two active drones closer than
 ``proximity_radius`` (a collision; both violate). A drone whose position enters the
 mouth of its own door (the door's span, the top ``DOOR_DEPTH`` metres of the room) has
@@ -46,7 +46,6 @@ numpy arrays and torch tensors with any leading batch shape, so a solver can bat
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -54,12 +53,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
-from gymnasium import logger, spaces
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
+from gymnasium import spaces
 from matplotlib.patches import Circle, Rectangle
 
-from dicrl_torch.envs.parallel import CheckedParallelEnv
+from dicrl_torch.envs.parallel import CheckedParallelEnv, agg_axes, axes_image
 
 # ---------------------------------------------------------------------------- layout
 ROOM_SIZE: float = 10.0
@@ -335,7 +332,7 @@ class DroneArena(CheckedParallelEnv):
     Observation of drone ``i`` (float32, 10 values): own position and velocity, the
     other drone's position and velocity, own door centre. Action: ``[2]`` float32
     velocity command in ``[-1, 1]^2``. Reward: 1 in the step a drone reaches its door
-    without a violation, else 0 (the learner brings its own reward; DESIGN §7).
+    without a violation, else 0 (the learner brings its own reward; docs/design.md §7).
 
     ``infos[agent]`` has ``violated``, ``reached``, ``collision`` (this step),
     ``in_obstacle`` and ``position`` (``[2]`` float64). An agent leaves
@@ -378,11 +375,7 @@ class DroneArena(CheckedParallelEnv):
                 f"dynamics must be a DroneDynamics, got {type(dynamics).__name__}; build "
                 f"one with DroneDynamics(dt=..., tau=...)."
             )
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(
-                f"render_mode must be None or one of {self.metadata['render_modes']}, "
-                f"got {render_mode!r}."
-            )
+        self._check_render_mode(render_mode)
         self.constrained = bool(constrained)
         self.max_steps = int(max_steps)
         self.dynamics = dynamics
@@ -410,16 +403,11 @@ class DroneArena(CheckedParallelEnv):
         self._overlay: np.ndarray | None = None
         self._rng: np.random.Generator | None = None
 
-    # ---- spaces -------------------------------------------------------------------
-    # PettingZoo requires the same space object on every call (see gridworld_env).
-    @functools.cache  # noqa: B019
-    def observation_space(self, agent: str) -> spaces.Box:
-        self._agent_index(agent)
+    # ---- spaces (cached per agent by CheckedParallelEnv) ----------------------------
+    def _observation_space(self) -> spaces.Box:
         return spaces.Box(low=self._obs_low, high=self._obs_high, dtype=np.float32)
 
-    @functools.cache  # noqa: B019
-    def action_space(self, agent: str) -> spaces.Box:
-        self._agent_index(agent)
+    def _action_space(self) -> spaces.Box:
         return spaces.Box(low=-1.0, high=1.0, shape=(2,), dtype=np.float32)
 
     # ---- episode ------------------------------------------------------------------
@@ -427,14 +415,10 @@ class DroneArena(CheckedParallelEnv):
     def started(self) -> bool:
         return self._state is not None
 
-    def reset(
-        self, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
-        """Start an episode; ``options={"positions": [[x0, y0], [x1, y1]]}`` sets the
-        start positions instead of the jittered nominal ones (other keys are ignored)."""
-        # Like gymnasium: reseed only when asked, so successive episodes differ.
-        if seed is not None or self._rng is None:
-            self._rng = np.random.default_rng(seed)
+    def _reset(self, options: dict[str, Any] | None
+               ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
+        """``reset(options={"positions": [[x0, y0], [x1, y1]]})`` sets the start positions
+        instead of the jittered nominal ones (other keys are ignored)."""
         jitter = self._rng.uniform(-START_JITTER, START_JITTER, size=(N_DRONES, 2))
         pos = np.asarray(NOMINAL_STARTS, dtype=np.float64) + jitter
         if options and options.get("positions") is not None:
@@ -451,12 +435,9 @@ class DroneArena(CheckedParallelEnv):
                  for a, i in self._index.items()}
         return obs, infos
 
-    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
-        """Advance one step. ``actions`` must hold a ``[2]`` command for every agent in
-        ``agents``; actions of agents that are already done are ignored."""
-        given = self._live_actions(actions)
-        if given is None:
-            return {}, {}, {}, {}, {}
+    def _step(self, given: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        """The step of :meth:`CheckedParallelEnv.step`; ``given`` holds a ``[2]`` velocity
+        command for every live agent."""
         live = list(given)
         command = np.zeros((N_DRONES, 2))
         for agent, a in given.items():
@@ -511,10 +492,7 @@ class DroneArena(CheckedParallelEnv):
         :func:`render_arena` for the accepted forms. ``None`` clears the overlay."""
         self._overlay = None if cells is None else constraint_cell_mask(cells)
 
-    def render(self) -> np.ndarray | None:
-        if self.render_mode is None:
-            logger.warn("render() called with render_mode=None; pass render_mode='rgb_array'.")
-            return None
+    def _render(self) -> np.ndarray:
         title = f"{self.metadata['name']}  t={self.timestep}/{self.max_steps}" + (
             "" if self.constrained else "  (nominal)")
         traj = self.trajectory() if self._history else None
@@ -525,9 +503,6 @@ class DroneArena(CheckedParallelEnv):
             constraint_cells=self._overlay, proximity_radius=self.proximity_radius,
             title=title,
         )
-
-    def close(self) -> None:
-        pass
 
     # ---- helpers ------------------------------------------------------------------
     def _info(self, i: int, violated: bool, reached: bool, collision: bool,
@@ -749,9 +724,7 @@ def render_arena(
     Returns:
         The RGB image.
     """
-    fig = Figure(figsize=(4.0, 4.0), dpi=80)
-    canvas = FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
+    ax = agg_axes((4.0, 4.0))
     if constraint_cells is not None:
         mask = constraint_cell_mask(constraint_cells)
         both = mask.all(0)
@@ -803,9 +776,4 @@ def render_arena(
     ax.set_yticks(ticks)
     ax.grid(color="0.85", lw=0.5)
     ax.tick_params(length=0, labelsize=6)
-    ax.set_aspect("equal")
-    if title:
-        ax.set_title(title, fontsize=8)
-    fig.tight_layout()
-    canvas.draw()
-    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+    return axes_image(ax, title)

@@ -1,5 +1,5 @@
 """The multi-expert grid world: layout, actions, true constraints and the learner's
-tabular model (DESIGN §3).
+tabular model (docs/design.md §3).
 
 Coordinates are ``(x, y)`` with ``x`` the column (left → right) and ``y`` the row
 (top → bottom). A cell's index is ``y * size + x``. A joint state of ``N`` experts is
@@ -30,7 +30,7 @@ ACTIONS: tuple[tuple[str, int, int], ...] = (
 ACTION_NAMES: tuple[str, ...] = tuple(a[0] for a in ACTIONS)
 N_ACTIONS = len(ACTIONS)
 
-# Scobee & Sastry's 9x9 layout (DESIGN §3): a chevron plus the column x = 4 with a
+# Scobee & Sastry's 9x9 layout (docs/design.md §3): a chevron plus the column x = 4 with a
 # two-cell gap at (4,3),(4,4).
 SCOBEE_OBSTACLES: tuple[tuple[int, int], ...] = (
     (2, 3), (3, 4), (4, 5), (5, 4), (6, 3),
@@ -103,7 +103,7 @@ class GridLayout:
     # ---- constructors -------------------------------------------------------------
     @classmethod
     def scobee(cls, n_experts: int = 3) -> GridLayout:
-        """The paper's 9x9 layout with the first ``n_experts`` experts of DESIGN §3."""
+        """The paper's 9x9 layout with the first ``n_experts`` experts of docs/design.md §3."""
         _check_n_experts(n_experts)
         return cls(
             size=9,
@@ -238,7 +238,7 @@ class TabularGridModel:
         layout: the grid; only its size, starts (P0) and experts count are used.
         horizon: number of decisions ``T`` in an episode.
         gamma: discount factor in ``(0, 1]``.
-        p_success: probability that an action succeeds (DESIGN §3: 0.8).
+        p_success: probability that an action succeeds (docs/design.md §3: 0.8).
     """
 
     def __init__(
@@ -317,12 +317,32 @@ class TabularGridModel:
         return P
 
 
-def joint_index(cells: Sequence[int] | np.ndarray, n_cells: int) -> int | np.ndarray:
-    """Flattened joint state index of per-expert cells (expert 1 most significant).
+def encode_joint(per_expert: Sequence[int] | np.ndarray | torch.Tensor,
+                 base: int) -> int | np.ndarray | torch.Tensor:
+    """Flattened joint index of per-expert indices ``[..., N]`` -> ``[...]`` int64.
 
-    ``cells`` has shape ``[..., N]``."""
-    cells = np.asarray(cells)
-    idx = np.zeros(cells.shape[:-1], dtype=np.int64)
-    for i in range(cells.shape[-1]):
-        idx = idx * n_cells + cells[..., i]
-    return idx if idx.ndim else int(idx)
+    Expert 1 is the most significant digit: ``Σ_i x_i · base^(N-1-i)``, the order of a
+    C-contiguous ``[base] * N`` tensor. Cells give the joint state (``base = S1``),
+    actions the joint action (``base = A1``). A torch tensor gives a tensor on its device;
+    anything else a numpy array, or a Python int for a single ``[N]`` tuple. The inverse
+    is :func:`decode_joint`."""
+    if isinstance(per_expert, torch.Tensor):
+        flat = torch.zeros(per_expert.shape[:-1], dtype=torch.int64, device=per_expert.device)
+    else:
+        per_expert = np.asarray(per_expert)
+        flat = np.zeros(per_expert.shape[:-1], dtype=np.int64)
+    for i in range(per_expert.shape[-1]):
+        flat = flat * base + per_expert[..., i]
+    return flat if isinstance(flat, torch.Tensor) or flat.ndim else int(flat)
+
+
+def decode_joint(joint: int | np.ndarray | torch.Tensor, base: int,
+                 n: int) -> np.ndarray | torch.Tensor:
+    """Per-expert indices ``[..., n]`` of flattened joint indices ``[...]``: the inverse
+    of :func:`encode_joint` (expert 1 the most significant digit). A torch tensor gives
+    a tensor on its device, anything else a numpy int64 array."""
+    if isinstance(joint, torch.Tensor):
+        digits = base ** torch.arange(n - 1, -1, -1, device=joint.device)
+        return (joint.unsqueeze(-1) // digits) % base
+    digits = base ** np.arange(n - 1, -1, -1, dtype=np.int64)
+    return (np.asarray(joint, dtype=np.int64)[..., None] // digits) % base

@@ -1,5 +1,5 @@
 """The multi-expert grid-world constrained Markov game as a PettingZoo ``ParallelEnv``
-(DESIGN §3).
+(docs/design.md §3).
 
 Geometry, actions and true constraints come from :mod:`dicrl_torch.envs.grid`; this
 module only adds the stochastic simulation, the ground-truth reward and rendering.
@@ -14,18 +14,15 @@ largest at the goal, so reaching the goal early and staying there earns the most
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
-from gymnasium import logger, spaces
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
+from gymnasium import spaces
 from matplotlib.patches import Rectangle
 
 from dicrl_torch.envs.grid import ACTION_NAMES, N_ACTIONS, GridLayout
-from dicrl_torch.envs.parallel import CheckedParallelEnv
+from dicrl_torch.envs.parallel import CheckedParallelEnv, agg_axes, axes_image
 
 DEFAULT_REWARD_WEIGHTS: tuple[float, float] = (1.0, 2.0)
 
@@ -90,11 +87,7 @@ class GridWorldCMG(CheckedParallelEnv):
                 f"constrained must be a bool (True: true CMG, False: nominal game), "
                 f"got {constrained!r}."
             )
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(
-                f"render_mode must be None or one of {self.metadata['render_modes']}, "
-                f"got {render_mode!r}."
-            )
+        self._check_render_mode(render_mode)
         self.layout = layout
         self.horizon = int(horizon)
         self.p_success = float(p_success)
@@ -118,19 +111,12 @@ class GridWorldCMG(CheckedParallelEnv):
         self._cells: np.ndarray | None = None
         self._rng: np.random.Generator | None = None
 
-    # ---- spaces -------------------------------------------------------------------
-    # PettingZoo requires the same space object on every call (so seeding it sticks)
-    # and recommends lru_cache (functools.cache is lru_cache(maxsize=None)); the few
-    # small envs the cache keeps alive do not matter.
-    @functools.cache  # noqa: B019
-    def observation_space(self, agent: str) -> spaces.MultiDiscrete:
-        self._agent_index(agent)
+    # ---- spaces (cached per agent by CheckedParallelEnv) ----------------------------
+    def _observation_space(self) -> spaces.MultiDiscrete:
         return spaces.MultiDiscrete([self.layout.n_cells] * self.layout.n_experts,
                                     dtype=np.int64)
 
-    @functools.cache  # noqa: B019
-    def action_space(self, agent: str) -> spaces.Discrete:
-        self._agent_index(agent)
+    def _action_space(self) -> spaces.Discrete:
         return spaces.Discrete(N_ACTIONS)
 
     # ---- ground truth -------------------------------------------------------------
@@ -147,12 +133,8 @@ class GridWorldCMG(CheckedParallelEnv):
     def started(self) -> bool:
         return self._cells is not None
 
-    def reset(
-        self, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
-        # Like gymnasium: reseed only when asked, so successive episodes differ.
-        if seed is not None or self._rng is None:
-            self._rng = np.random.default_rng(seed)
+    def _reset(self, options: dict[str, Any] | None
+               ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
         self.agents = list(self.possible_agents)
         self.violated = dict.fromkeys(self.possible_agents, False)
         self.timestep = 0
@@ -162,12 +144,9 @@ class GridWorldCMG(CheckedParallelEnv):
                  for a in self.agents}
         return obs, infos
 
-    def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
-        """Advance one step. ``actions`` must hold an action for every agent in
-        ``agents``; actions of agents that are already done are ignored."""
-        given = self._live_actions(actions)
-        if given is None:
-            return {}, {}, {}, {}, {}
+    def _step(self, given: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        """The step of :meth:`CheckedParallelEnv.step`; ``given`` holds an action in
+        ``0..8`` (:data:`~dicrl_torch.envs.grid.ACTIONS`) for every live agent."""
         live = list(given)
         acts = {agent: self._check_action(agent, a) for agent, a in given.items()}
         pairs = [(a, self._index[a]) for a in live]
@@ -210,10 +189,7 @@ class GridWorldCMG(CheckedParallelEnv):
         self._require_started("state")
         return self._cells.copy()
 
-    def render(self) -> np.ndarray | None:
-        if self.render_mode is None:
-            logger.warn("render() called with render_mode=None; pass render_mode='rgb_array'.")
-            return None
+    def _render(self) -> np.ndarray:
         lines = [f"{self.metadata['name']}  t={self.timestep}/{self.horizon}"
                  + ("" if self.constrained else "  (nominal)")]
         if self.layout.forbidden_actions:
@@ -223,9 +199,6 @@ class GridWorldCMG(CheckedParallelEnv):
             lines.append("violated: " + ", ".join(stopped))
         cells = None if self._cells is None else self._cells.tolist()
         return render_grid(self.layout, cells=cells, title="\n".join(lines))
-
-    def close(self) -> None:
-        pass
 
     # ---- helpers ------------------------------------------------------------------
     def _check_action(self, agent: str, a: Any) -> int:
@@ -280,9 +253,7 @@ def render_grid(
         The RGB image.
     """
     G, S1 = layout.size, layout.n_cells
-    fig = Figure(figsize=(4.2 if heat is not None else 3.6, 4.0), dpi=80)
-    canvas = FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
+    ax = agg_axes((4.2 if heat is not None else 3.6, 4.0))
     if heat is not None:
         heat = np.asarray(heat, dtype=np.float64)
         if heat.shape != (S1,):
@@ -291,7 +262,7 @@ def render_grid(
             )
         im = ax.imshow(heat.reshape(G, G), cmap="viridis", origin="upper",
                        extent=(-0.5, G - 0.5, G - 0.5, -0.5), interpolation="nearest")
-        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
+        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
     for x, y in layout.obstacles:
         # Over a heat map obstacles are hatched, not filled, so their values stay visible.
         style = ({"fill": False, "hatch": "///", "ec": "0.15", "lw": 0} if heat is not None
@@ -318,16 +289,11 @@ def render_grid(
                     zorder=5)
             ax.text(x, y, str(i), ha="center", va="center", fontsize=7, color="w", zorder=6)
     ax.set_xlim(-0.5, G - 0.5)
-    ax.set_ylim(G - 0.5, -0.5)  # row 0 at the top, as in DESIGN §3
+    ax.set_ylim(G - 0.5, -0.5)  # row 0 at the top, as in docs/design.md §3
     ax.set_xticks(np.arange(G))
     ax.set_yticks(np.arange(G))
     ax.set_xticks(np.arange(G + 1) - 0.5, minor=True)
     ax.set_yticks(np.arange(G + 1) - 0.5, minor=True)
     ax.grid(which="minor", color="0.6", lw=0.6)
     ax.tick_params(which="both", length=0, labelsize=7)
-    ax.set_aspect("equal")
-    if title:
-        ax.set_title(title, fontsize=8)
-    fig.tight_layout()
-    canvas.draw()
-    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+    return axes_image(ax, title)

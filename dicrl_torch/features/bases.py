@@ -1,4 +1,4 @@
-"""Fixed feature bases and linear heads (DESIGN §2–3).
+"""Fixed feature bases and linear heads (docs/design.md §2–3).
 
 A basis is an ``nn.Module`` without trainable parameters whose ``forward()`` returns
 :class:`FactoredFeatures`: the feature vector of a joint state-action pair is
@@ -19,7 +19,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from dicrl_torch.envs.grid import GridLayout, TabularGridModel, check_regions
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel, check_regions, encode_joint
+from dicrl_torch.features.base import EnvKind
 
 
 @dataclass(frozen=True)
@@ -69,9 +70,7 @@ class FactoredFeatures:
         N = self.local.shape[0]
         phi = sum(self.local[i, cells[..., i], actions[..., i]] for i in range(N))
         if self.joint is not None:
-            flat = torch.zeros(cells.shape[:-1], dtype=torch.int64, device=cells.device)
-            for i in range(N):
-                flat = flat * n_cells + cells[..., i]
+            flat = encode_joint(cells, n_cells)
             phi = phi.index_add(-1, self.joint_columns, self.joint[flat]) if phi.ndim == 1 \
                 else phi.index_add(phi.ndim - 1, self.joint_columns, self.joint[flat])
         return phi
@@ -126,13 +125,19 @@ class FactoredReward:
 
 
 class FeatureBasis(nn.Module):
-    """Base class: a fixed basis over a :class:`TabularGridModel`.
+    """Base class: a fixed basis over a :class:`TabularGridModel` (a
+    :class:`~dicrl_torch.features.base.Basis` of kind ``"grid"``).
 
     Subclasses set ``self.names`` (one label per feature), register their tables as
     buffers in ``__init__`` and implement :meth:`build`. ``forward()`` returns the
     (cached) :class:`FactoredFeatures`, checked to lie in ``[0, max_value]``."""
 
     max_value: float = 1.0
+    names: list[str]
+    # The kind of environment the basis serves: "grid", the tabular grid world (it is
+    # built on a TabularGridModel). experiments/config_checks.py refuses a basis whose
+    # kind is not the configured env's.
+    env_kind: EnvKind = "grid"
     # Cells that each *region* feature (one covering several cells) marks, by feature
     # name, so that constraint maps can draw a learned region; single-cell features are
     # recognised by their ``cell(x,y)`` names.
@@ -185,7 +190,7 @@ class FeatureBasis(nn.Module):
 
 # ------------------------------------------------------------------------ reward bases
 class GoalClosenessRewardBasis(FeatureBasis):
-    """Per-expert reward features of the expert's own cell (DESIGN §3):
+    """Per-expert reward features of the expert's own cell (docs/design.md §3):
     ``[closeness = 1 - cheb(s_i, g_i)/(G-1), at_goal]``, so ``l_r = 2 N``; block
     ``i`` of the weight vector is expert ``i``'s ``ω_r^[i]``."""
 

@@ -1,4 +1,4 @@
-"""Fixed feature bases of the drone arena (DESIGN §7, paper §6.2).
+"""Fixed feature bases of the drone arena (docs/design.md §7, paper §6.2).
 
 A basis is an ``nn.Module`` without trainable parameters mapping batched joint states
 ``[..., 2, 4]`` (positions ``x, y`` and velocities of the two drones; optionally the
@@ -42,6 +42,7 @@ from dicrl_torch.envs.drones import (
     in_own_door,
     obstacle_cell_mask,
 )
+from dicrl_torch.features.base import EnvKind
 
 
 def _positive(name: str, value: Any) -> float:
@@ -58,7 +59,8 @@ def _positive_int(name: str, value: Any) -> int:
 
 
 class DroneFeatureBasis(nn.Module):
-    """Base class of the drone bases.
+    """Base class of the drone bases (a :class:`~dicrl_torch.features.base.Basis` of kind
+    ``"continuous"``).
 
     Subclasses set ``self.names`` (one label per feature) and ``self.max_value``,
     register their constants as (non-persistent) buffers and implement
@@ -68,6 +70,9 @@ class DroneFeatureBasis(nn.Module):
 
     max_value: float = 1.0
     names: list[str]
+    # The kind of environment the basis serves: "continuous", the drone arena's states.
+    # experiments/config_checks.py refuses a basis whose kind is not the configured env's.
+    env_kind: EnvKind = "continuous"
 
     @property
     def dim(self) -> int:

@@ -1,4 +1,4 @@
-"""Exact finite-horizon soft-Bellman solver on the factored grid-world model (DESIGN §4).
+"""Exact finite-horizon soft-Bellman solver on the factored grid-world model (docs/design.md §4).
 
 Backward pass, for t = T-1 .. 0 (``V_T = 0``)::
 
@@ -75,6 +75,7 @@ from dataclasses import dataclass, field
 import torch
 
 from dicrl_torch.envs.grid import TabularGridModel
+from dicrl_torch.features.base import EnvKind
 from dicrl_torch.features.bases import FactoredReward
 
 # Below this many state-action pairs the eager path is fast enough and compiling
@@ -434,6 +435,10 @@ class FactoredSoftBellman:
         chunk_cells: expert-1 cells per chunk on the eager path (bounds memory).
         progress: show a tqdm bar over time steps.
     """
+
+    # The kind of environment the solver serves: "grid", the tabular grid world (as its
+    # bases, features.base.Basis). experiments/config_checks.py refuses it elsewhere.
+    env_kind: EnvKind = "grid"
 
     def __init__(self, *, model: TabularGridModel, device: str | torch.device = "cpu",
                  dtype: torch.dtype | str = torch.float32, compile: bool | str = "auto",

@@ -1,9 +1,10 @@
-"""Expert policies, trajectory sampling and each learner's local estimates (DESIGN §3).
+"""Expert policies and trajectory sampling (docs/design.md §3).
 
 The experts follow the optimal policy of the *true* CMG: the hard-max DP of the
 factored solver with every constrained pair masked (``-inf`` reward), ties broken
 uniformly; an optional temperature makes them soft-optimal. The *nominal* experts
-solve the same game without the mask.
+solve the same game without the mask. Each learner's local estimates from the sampled
+trajectories are :mod:`dicrl_torch.demos.features`.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numpy as np
 import torch
 
 from dicrl_torch.demos.storage import Demonstrations
-from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel, decode_joint
 from dicrl_torch.features.bases import FactoredFeatures, FactoredReward, _collision_table
 from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
 
@@ -105,38 +106,12 @@ def sample_trajectories(solution: SoftBellmanSolution, n: int,
     states = torch.empty(n, T + 1, N, dtype=torch.int64)
     actions = torch.empty(n, T, N, dtype=torch.int64)
     states[:, 0] = cells
-    digits = A1 ** torch.arange(N - 1, -1, -1)  # joint action -> per expert (1 first)
     for t in range(T):
         pi = solution.policy_at(t, cells).cpu()  # [n, A1^N]
         joint = torch.multinomial(pi, 1, generator=g).squeeze(1)
-        a = (joint.unsqueeze(1) // digits) % A1
+        a = decode_joint(joint, A1, N)  # joint action -> per expert
         move = torch.rand(n, N, generator=g, dtype=torch.float64) < m.p_success
         cells = torch.where(move, nxt[cells, a], cells)
         actions[:, t], states[:, t + 1] = a, cells
     return Demonstrations(states=states.numpy(), actions=actions.numpy(), n_cells=m.n_cells,
                           n_actions=A1)
-
-
-def discounted_feature_sums(features: FactoredFeatures, demos: Demonstrations,
-                            gamma: float) -> torch.Tensor:
-    """Per-trajectory discounted feature sums ``Σ_t γ^t φ(s_t, a_t)``: ``[m, l]``.
-
-    Averaged over a learner's trajectories this is ``μ̂_r^[v]`` for reward features,
-    and for cost features the per-feature accrual whose dot product with ``ω_c`` is
-    the local cost estimate ``b̂_ωc^[v]``."""
-    cells = torch.tensor(demos.states[:, :-1])  # [m, T, N] (copies: demos are read-only)
-    acts = torch.tensor(demos.actions)
-    n_cells = features.local.shape[1]
-    if features.local.shape[0] != demos.n_experts or n_cells != demos.n_cells:
-        raise ValueError(
-            f"Demonstrations of {demos.n_experts} experts on {demos.n_cells} cells do not "
-            f"match features for {features.local.shape[0]} experts on {n_cells} cells.")
-    phi = features.at(cells, acts, n_cells)  # [m, T, l]
-    disc = gamma ** torch.arange(demos.horizon, dtype=torch.float64)
-    return torch.einsum("mtl,t->ml", phi, disc)
-
-
-def local_estimates(features: FactoredFeatures, demos: Demonstrations,
-                    gamma: float) -> torch.Tensor:
-    """``[l]`` mean discounted feature sum over ``demos`` (a learner's private shard)."""
-    return discounted_feature_sums(features, demos, gamma).mean(0)

@@ -11,8 +11,8 @@ so ``Σ_g Q_g`` satisfies the joint soft Bellman equation: the fixed point, and 
 objective ``E[α ln π(a | s) − Σ_g Q_g(s, a)]``, are plain SAC's. What changes is the
 regression, and the intent is an easier one: one drone's return is no longer noise in the
 target of the other's. (In a controlled check it did not stop SAC's swings between
-behaviours; README, "Drones".) The twin-critic minimum is taken per column (a lower
-bound of the minimum of the sums).
+behaviours; docs/drones.md, "Beside the paper, and what decides SR".) The twin-critic
+minimum is taken per column (a lower bound of the minimum of the sums).
 
 With ``G = 1`` :meth:`DecomposedSAC.train` is SB3's ``SAC.train`` for a fixed temperature
 (``tests/test_sac_solver.py`` compares their updates).

@@ -1,25 +1,27 @@
-"""Checkpoints and signals of the entry points: trainer states written atomically,
-refused on resume when the run's training config differs, and SIGINT/SIGTERM turned
-into a checkpointed stop (:class:`StopOnSignal`) or an immediate one
-(:func:`interrupt_on_signals`)."""
+"""Checkpoints of a run: every trained method's state (and a greedy baseline's progress)
+by name in one file, written atomically, loaded with ``torch.load(weights_only=True)``,
+and refused on resume when the run's training config differs (docs/design.md §8).
+
+The command line merges a method trained in a job of its own into the run it belongs to::
+
+    python -m dicrl_torch.runs.checkpoints merge SOURCE INTO --method C-ICRL
+"""
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import hashlib
 import json
 import os
 import signal
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
-from common import atomic_write
-from omegaconf import OmegaConf
 
-from dicrl_torch.algos.dicrl import DICRL
+from dicrl_torch.io import atomic_write
 
 # What a checkpoint's training state depends on. Left out: how the run is started,
 # logged, evaluated or stopped (resume, logger, eval_episodes, eval_every, threshold, ...),
@@ -33,24 +35,28 @@ CHECKPOINT_IGNORED = ("solver.progress", "algo.outer_iterations", "algo.threshol
                       "algo.prune_min_gain", "algo.run_c_icrl", "algo.run_d_icrl")
 
 
-def training_config(cfg) -> dict[str, Any]:
-    """The flattened ``key -> value`` config that a checkpoint must match to resume."""
+def training_config(config: Mapping[str, Any]) -> dict[str, Any]:
+    """The flattened ``key -> value`` config that a checkpoint must match to resume.
+
+    Args:
+        config: the run's whole config as plain nested dicts (the entry point's resolved
+            Hydra config, ``OmegaConf.to_container(cfg, resolve=True)``).
+    """
     flat: dict[str, Any] = {}
 
     def walk(node, path):
-        if isinstance(node, dict):
+        if isinstance(node, Mapping):
             for k, v in node.items():
                 walk(v, f"{path}.{k}" if path else str(k))
         elif path not in CHECKPOINT_IGNORED:
             flat[path] = node
 
-    container = OmegaConf.to_container(cfg, resolve=True)
-    walk({k: container[k] for k in CHECKPOINT_KEYS if k in container}, "")
-    if container.get("shard_files") is not None:
+    walk({k: config[k] for k in CHECKPOINT_KEYS if k in config}, "")
+    if config.get("shard_files") is not None:
         # Own demonstrations: the state depends on the files' contents, not on their paths.
         flat["shard_files.sha256"] = [hashlib.sha256(Path(f).read_bytes()).hexdigest()[:16]
                                       if Path(f).is_file() else None
-                                      for f in container["shard_files"]]
+                                      for f in config["shard_files"]]
     return flat
 
 
@@ -65,14 +71,6 @@ def config_diff(a: dict, b: dict, a_is: str, b_is: str) -> str:
 # prunes each learner's constraint set, one solve per candidate (minutes per learner on
 # the 3-expert problem), and a run stopped after that point must not do it again.
 EVALUATED = ":evaluated"
-
-
-def evaluation_settings(cfg) -> dict[str, Any]:
-    """What a trained method's rows depend on besides its state and the training config
-    (which holds the rollouts' seed)."""
-    a = cfg.algo
-    return {"threshold": float(a.threshold), "eval_episodes": int(cfg.eval_episodes),
-            "prune_min_gain": None if a.prune_min_gain is None else float(a.prune_min_gain)}
 
 
 def progress_of(state: dict) -> str:
@@ -173,7 +171,8 @@ class Checkpoints:
         self.save_state(name + EVALUATED, {"outer_iteration": outer_iteration,
                                            "evaluation": settings, "rows": plain})
 
-    def save(self, name: str, trainer: DICRL) -> None:
+    def save(self, name: str, trainer) -> None:
+        """Save a trainer's ``state_dict()`` as ``name``."""
         self.save_state(name, trainer.state_dict())
 
     def save_state(self, name: str, state: dict) -> None:
@@ -186,90 +185,12 @@ class Checkpoints:
         # A copy: the trainer goes on changing its history list and, when pruning, ω_c in
         # place, and this state may be written again (with another name's save).
         self.saved[name] = {**copy.deepcopy(state), "run_config": self.config}
-        atomic_write(self.path, lambda tmp: torch.save(self.saved, tmp))
+        atomic_write(self.path, lambda f: torch.save(self.saved, f))
         crash = os.environ.get("DICRL_CRASH_AFTER")  # fault injection for tests
         if not self.crashed and crash in {f"{tag}:{n}" for tag in (name, *self.crash_tags)}:
             self.crashed = True
             sig = getattr(signal, "SIG" + os.environ.get("DICRL_CRASH_SIGNAL", "KILL"))
             os.kill(os.getpid(), sig)
-
-
-class Interrupted(Exception):
-    """SIGINT or SIGTERM stopped the run.
-
-    Attributes:
-        signum: the signal.
-        saved: what was checkpointed on the way out (None: stopped at once; the last
-            atomic checkpoint stays valid).
-    """
-
-    def __init__(self, signum: int, saved: str | None = None) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum, self.saved = signum, saved
-
-
-class StopOnSignal:
-    """SIGINT/SIGTERM handling of the all-in-one-process run (a context manager).
-
-    The first signal during training lets the current outer iteration (or greedy
-    candidate) finish (a state in the middle of one is no consistent checkpoint), then
-    ``train.train`` (or ``train.run_greedy``) checkpoints it and raises
-    :class:`Interrupted`. A second signal, or one outside training, raises at once: every
-    checkpoint is written atomically, so the last one stays valid, and everything after
-    training is recomputed on resume.
-    """
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self.training = False
-        self._previous: dict = {}
-
-    def __enter__(self) -> StopOnSignal:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-    def _handle(self, signum: int, frame) -> None:
-        if self.training and self.signum is None:
-            self.signum = signum
-            print(f"\n{signal.Signals(signum).name} received: stopping after this outer "
-                  f"iteration (or greedy candidate), with a checkpoint (send it again to "
-                  f"stop at once)",
-                  file=sys.stderr, flush=True)
-            return
-        raise Interrupted(signum)
-
-
-@contextlib.contextmanager
-def stoppable(stop: StopOnSignal | None):
-    """Inside, a first signal caught by ``stop`` (if any) only sets ``stop.signum``: the
-    work in progress checks it after its current unit and saves before raising."""
-    if stop is None:
-        yield
-        return
-    stop.training = True
-    try:
-        yield
-    finally:
-        stop.training = False
-
-
-def interrupt_on_signals() -> None:
-    """SIGINT/SIGTERM raise :class:`Interrupted` at once (learner processes of a
-    distributed run). A learner cannot finish its outer iteration alone: the others
-    would wait for it at the next exchange. Its checkpoints are written atomically, so
-    the last one stays valid, and resume lets a learner that is one save behind catch up.
-    """
-
-    def handle(signum: int, frame) -> None:
-        raise Interrupted(signum)
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, handle)
 
 
 def merge(source: Path, into: Path, names: list[str]) -> dict[str, int]:
@@ -310,7 +231,7 @@ def merge(source: Path, into: Path, names: list[str]) -> dict[str, int]:
             else:  # of the state replaced
                 dst.pop(key, None)
         copied[name] = n
-    atomic_write(into, lambda tmp: torch.save(dst, tmp))
+    atomic_write(into, lambda f: torch.save(dst, f))
     return copied
 
 
@@ -318,8 +239,8 @@ def main(argv: list[str] | None = None) -> None:
     import argparse
 
     parser = argparse.ArgumentParser(
-        prog="python experiments/checkpoints.py",
-        description="Checkpoint tools of experiments/train.py.")
+        prog="python -m dicrl_torch.runs.checkpoints",
+        description="Checkpoint tools of the runs of experiments/train.py.")
     commands = parser.add_subparsers(dest="command", required=True)
     m = commands.add_parser(
         "merge", help="copy a method's state from one run's checkpoint into another's",

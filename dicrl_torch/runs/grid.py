@@ -1,0 +1,399 @@
+"""The multi-expert grid world as a run's task (docs/design.md §3, paper §6.1, Table 1).
+
+:class:`GridTask` holds what every process of a run rebuilds identically from its seed:
+the learners' model, the experts (optimal or soft-optimal in the true CMG), the
+demonstrations (sampled, or read from the learners' own files) and their shards; and it
+answers what :mod:`dicrl_torch.runs.runner` asks of a task: learner models, per-iteration
+metrics, table rows, the greedy baselines, the reference rows and the paper's Fig. 2.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from dicrl_torch.algos.dicrl import DICRL
+from dicrl_torch.algos.greedy import GreedyConstraintInference, GreedyResult
+from dicrl_torch.algos.models import TabularLearnerModel
+from dicrl_torch.demos import load_demonstrations, partition_demonstrations, save_demonstrations
+from dicrl_torch.demos.storage import Demonstrations
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+from dicrl_torch.envs.gridworld_env import render_grid
+from dicrl_torch.figures import (
+    constraint_cells,
+    metric_curves,
+    obstacle_cells,
+    side_by_side,
+    state_visitation,
+    visitation_heatmap,
+)
+from dicrl_torch.metrics import (
+    false_negative_rate,
+    false_positive_rate,
+    learned_constraints,
+    reward_function_distance,
+    rollout_true_cmg,
+    true_constraints_of,
+)
+from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
+
+# The baselines' table rows (names as in the paper) and the greedy's demonstrator model.
+GRID_BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
+
+
+def constraint_names(names: Sequence[str], cost_weights: torch.Tensor,
+                     threshold: float) -> list[str]:
+    """Names of the features that ``cost_weights`` ``[d]`` marks as constraints
+    (``ω_c,j >= threshold``): kept in the table rows, so that the figures of a distributed
+    run, drawn by one process, know every learner's constraints."""
+    return [name for name, w in zip(names, cost_weights.tolist(), strict=True)
+            if w >= threshold]
+
+
+@dataclass(frozen=True)
+class GridEvaluation:
+    """What evaluating a grid policy needs: rollouts in the TRUE CMG (violators stop)
+    with common random numbers, and the ground truth the metrics compare with.
+
+    Attributes:
+        model: the learners' tabular model (dynamics, horizon, start).
+        layout: the true constraints.
+        reward_table: ``[N, S1]`` each expert's true reward in each cell.
+        episodes: evaluation episodes per row.
+        seed: the rollouts' seed (every row is rolled out with the same random numbers).
+        true_reward_weights: ``[l_r]`` ω_rE (RFD).
+        true_constraints: ``[d]`` bool, the true constraint features of the cost basis;
+            None for a basis without a ground truth (FPR/FNR are then null).
+    """
+
+    model: TabularGridModel
+    layout: GridLayout
+    reward_table: torch.Tensor
+    episodes: int
+    seed: int
+    true_reward_weights: torch.Tensor
+    true_constraints: np.ndarray | None
+
+    def rollout(self, policy) -> dict[str, float]:
+        """``CR_mean``, ``CR_std`` and ``CVR`` of ``policy`` (``policy_at``): a row depends
+        neither on the process that evaluates it nor on the rows evaluated before it."""
+        ev = rollout_true_cmg(policy=policy, model=self.model, layout=self.layout,
+                              reward_table=self.reward_table, n_episodes=self.episodes,
+                              rng=torch.Generator().manual_seed(self.seed))
+        return {"CR_mean": ev.cr_mean, "CR_std": ev.cr_std, "CVR": ev.cvr}
+
+    def rates(self, learned) -> dict[str, float | None]:
+        """``FPR`` and ``FNR`` of the learned mask ``[d]``."""
+        return {"FPR": false_positive_rate(learned, self.true_constraints),
+                "FNR": false_negative_rate(learned, self.true_constraints)}
+
+
+def load_shard_files(files: Sequence[str], split: Sequence[int], model: TabularGridModel,
+                     read: Sequence[int] | None = None) -> list[Demonstrations | None]:
+    """Learner ``v``'s demonstrations from ``files[v]``, checked against the learners' model
+    (cells, actions, experts, horizon, start cells) and ``split``, before any solve.
+
+    Args:
+        read: the learners whose files are read (default: all); the others' entries are None.
+
+    Raises:
+        ValueError: naming the file, what does not match and the fix.
+    """
+    read = list(range(len(files))) if read is None else list(read)
+    shards: list[Demonstrations | None] = [None] * len(files)
+    for v in read:
+        shards[v] = load_demonstrations(files[v], n_cells=model.n_cells,
+                                        n_actions=model.n_actions, n_experts=model.n_experts,
+                                        horizon=model.horizon)
+    if len(read) == len(files):
+        counts = [s.n_trajectories for s in shards]
+        if counts != list(split):
+            raise ValueError(f"shard_files hold {counts} trajectories, but split={list(split)};"
+                             f" set split=[{','.join(map(str, counts))}] "
+                             f"n_demonstrations={sum(counts)}.")
+    for v in read:
+        if shards[v].n_trajectories != split[v]:
+            raise ValueError(f"demonstrations file '{files[v]}' holds "
+                             f"{shards[v].n_trajectories} trajectories, but split[{v}]="
+                             f"{split[v]}; set split to the files' trajectory counts.")
+    start = np.asarray(model.start_state)
+    for f, shard in ((files[v], shards[v]) for v in read):
+        # P0 puts every expert in its start cell: a trajectory starting elsewhere was
+        # recorded on another layout, and its likelihood would be 0.
+        wrong = np.nonzero((shard.states[:, 0] != start).any(1))[0]
+        if wrong.size:
+            k = int(wrong[0])
+            raise ValueError(f"demonstrations file '{f}': trajectory {k} starts in cells "
+                             f"{shard.states[k, 0].tolist()}, but this layout's experts start "
+                             f"in {start.tolist()}; use demonstrations recorded on this "
+                             f"layout, or the env.layout they were recorded on.")
+    return shards
+
+
+def concatenate(shards: Sequence[Demonstrations]) -> Demonstrations:
+    """All learners' trajectories, in learner order (C-ICRL's and the baselines' data)."""
+    return Demonstrations(states=np.concatenate([s.states for s in shards]),
+                          actions=np.concatenate([s.actions for s in shards]),
+                          n_cells=shards[0].n_cells, n_actions=shards[0].n_actions)
+
+
+class GridTask:
+    """The grid world's run: problem, evaluation, baselines and figures.
+
+    Args:
+        layout, model, solver: the true layout, the learners' (nominal) model and its
+            factored solver.
+        reward_basis, cost_basis: the learners' feature bases.
+        true_reward_weights: ``[N · l_r]`` ω_rE in the reward basis' layout.
+        expert_solver: the solver of the experts' policies (default ``solver``; a float64
+            one on small problems makes the demonstrations exact).
+        expert_temperature: 0: optimal experts (ties uniform); > 0 soft-optimal.
+        split: trajectories per learner (their sum is the number of demonstrations).
+        seed: seeds the demonstrations and the evaluation rollouts.
+        eval_episodes: evaluation episodes per table row.
+        shard_files: one ``.npz`` per learner instead of sampled demonstrations.
+        read_shards: the learners whose files this process reads (default all); a
+            learner process of a distributed run reads only its own.
+        with_experts: solve the experts' policies (the reference rows and sampling need
+            them; a learner process on its own file does not).
+        threshold: ``ω_c,j >= threshold`` marks a learned constraint.
+        prune_min_gain: prune learned constraints the data does not need (nats per
+            trajectory), or None to keep them all.
+        baselines: greedy rows to run (``"ME-greedy"``, ``"MCE-greedy"``).
+        baseline_epsilon, baseline_max_constraints: the greedy's stopping rule.
+    """
+
+    columns = ("CR", "FPR", "FNR", "CVR", "RFD")
+    multi_reference = True  # Experts (ground truth) and (nominal)
+
+    def __init__(self, *, layout: GridLayout, model: TabularGridModel, solver, reward_basis,
+                 cost_basis, true_reward_weights: torch.Tensor, expert_solver=None,
+                 expert_temperature: float = 0.0, split: Sequence[int], seed: int,
+                 eval_episodes: int, shard_files: Sequence[str] | None = None,
+                 read_shards: Sequence[int] | None = None, with_experts: bool = True,
+                 threshold: float = 0.5, prune_min_gain: float | None = None,
+                 baselines: Sequence[str] = (), baseline_epsilon: float | None = None,
+                 baseline_max_constraints: int | None = None) -> None:
+        unknown = [b for b in baselines if b not in GRID_BASELINES]
+        if unknown:
+            raise ValueError(f"Unknown grid baselines {unknown}; choose from "
+                             f"{list(GRID_BASELINES)}.")
+        self.layout, self.model, self.solver = layout, model, solver
+        self.reward_basis, self.cost_basis = reward_basis, cost_basis
+        self.split = [int(m) for m in split]
+        self.threshold, self.prune_min_gain = float(threshold), prune_min_gain
+        self.baseline_names = list(baselines)
+        self.baseline_epsilon = baseline_epsilon
+        self.baseline_max_constraints = baseline_max_constraints
+        self.shard_files = None if shard_files is None else list(shard_files)
+        reward_table = reward_basis().weighted(true_reward_weights).local[:, :, 0]
+        self.evaluation = GridEvaluation(
+            model=model, layout=layout, reward_table=reward_table, episodes=int(eval_episodes),
+            seed=int(seed), true_reward_weights=true_reward_weights,
+            true_constraints=true_constraints_of(cost_basis))
+        self.experts = self.nominal = None
+        if with_experts:
+            exp_solver = solver if expert_solver is None else expert_solver
+            kw = dict(solver=exp_solver, reward_features=reward_basis(),
+                      reward_weights=true_reward_weights, temperature=expert_temperature)
+            self.experts = expert_solution(**kw)
+            self.nominal = expert_solution(**kw, constrained=False)
+        if self.shard_files is None:
+            if self.experts is None:
+                raise ValueError("Sampled demonstrations need the experts: with_experts=True.")
+            self.demos: Demonstrations | None = sample_trajectories(
+                self.experts, sum(self.split), np.random.default_rng(seed))
+            self.shards: list[Demonstrations | None] = list(
+                partition_demonstrations(self.demos, self.split))
+        else:
+            self.shards = load_shard_files(self.shard_files, self.split, model, read_shards)
+            self.demos = None if None in self.shards else concatenate(self.shards)
+
+    # ------------------------------------------------------------------ set-up
+    def describe(self) -> str:
+        return (f"{self.layout.n_experts} experts, {len(self.split)} learners holding "
+                f"{self.split} demonstrations; {self.model.n_pairs:,} state-action pairs")
+
+    def announce(self, out: Path) -> None:
+        """Save the demonstrations (sampled ones) and check the baselines build."""
+        if self.demos is not None and self.shard_files is None:
+            save_demonstrations(out / "demos.npz", self.demos)
+        self.make_baselines({}, progress=False)  # a baseline that cannot run fails now
+        print(self.describe())
+
+    def learner_model(self, local_ids: Sequence[int], shards: Sequence, stream: int
+                      ) -> TabularLearnerModel:
+        """One stateless exact model serves every learner."""
+        return TabularLearnerModel(solver=self.solver, reward_basis=self.reward_basis,
+                                   cost_basis=self.cost_basis)
+
+    # ------------------------------------------------------------------ per iteration
+    def outer_metrics(self, trainer: DICRL, rollouts: bool) -> dict[str, list]:
+        """This outer iteration's metrics of the local learners, lists in local order:
+        FPR and FNR (of ``ω_c >= threshold``, before the final pruning) and RFD always;
+        CR and CVR when ``rollouts``."""
+        ev = self.evaluation
+        rates = [ev.rates(learned_constraints(w, self.threshold))
+                 for w in trainer.state.cost_weights]
+        metrics = {"FPR": [r["FPR"] for r in rates], "FNR": [r["FNR"] for r in rates],
+                   "RFD": [reward_function_distance(eta[:-1], ev.true_reward_weights)
+                           for eta in trainer.state.eta_bar]}
+        if rollouts:
+            rows = [ev.rollout(trainer.policy(i).policy_at) for i in range(len(trainer.local))]
+            metrics.update(CR=[r["CR_mean"] for r in rows], CVR=[r["CVR"] for r in rows])
+        return metrics
+
+    # ------------------------------------------------------------------ table rows
+    def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True) -> dict:
+        """The table row of local learner ``i`` (prunes its constraints first, if asked)."""
+        ev = self.evaluation
+        raw = learned_constraints(trainer.state.cost_weights[i], self.threshold)
+        before = ev.rates(raw)
+        extra: dict[str, Any] = {"FPR_before_pruning": before["FPR"],
+                                 "FNR_before_pruning": before["FNR"]}
+        if self.prune_min_gain is not None:
+            # The pruned set explains the learner's data to within min_gain nats per
+            # trajectory.
+            cw, pruned = trainer.prune_constraints(i, self.threshold, self.prune_min_gain,
+                                                   progress=progress)
+            trainer.state.cost_weights[i] = cw
+            extra["pruned"] = len(pruned)
+        learned = learned_constraints(trainer.state.cost_weights[i], self.threshold)
+        row = ev.rollout(trainer.policy(i).policy_at)
+        row.update(extra)
+        row.update(ev.rates(learned),
+                   RFD=reward_function_distance(trainer.state.eta_bar[i, :-1],
+                                                ev.true_reward_weights),
+                   SR=None, multiplier=float(trainer.state.eta_bar[i, -1]),
+                   n_learned=int(learned.sum()))
+        row["constraints"] = constraint_names(self.cost_basis.names,
+                                              trainer.state.cost_weights[i], self.threshold)
+        return row
+
+    def row_scalars(self, row: dict) -> list[tuple[str, float, int]]:
+        return []
+
+    def constraint_map(self, label: str, row: dict) -> np.ndarray:
+        """PNG-ready map of a row's learned cell (and region) constraints (red crosses)
+        over the true obstacles (bright)."""
+        heat = np.zeros(self.layout.n_cells)
+        heat[obstacle_cells(self.layout)] = 1.0
+        cells = constraint_cells(self.layout, row["constraints"], self.cost_basis.region_cells)
+        return render_grid(self.layout, heat=heat, constraint_cells=cells,
+                           title=f"{label}: learned cell constraints (x)")
+
+    def reference_rows(self) -> dict[str, dict]:
+        """The experts' rows: in the true CMG and in the nominal game."""
+        rows = {}
+        for name, sol in (("Experts (ground truth)", self.experts),
+                          ("Experts (nominal)", self.nominal)):
+            row = self.evaluation.rollout(sol.policy_at)
+            row.update(FPR=None, FNR=None, RFD=0.0, SR=None)
+            rows[name] = row
+        return rows
+
+    # ------------------------------------------------------------------ baselines
+    def make_baselines(self, methods: dict[str, dict], progress: bool = True
+                       ) -> dict[str, GreedyConstraintInference]:
+        """The requested greedy baselines by row name, built (and so checked: e.g. a cost
+        basis that is not non-negative) but not run.
+
+        As in the paper, they are given the TRUE reward and all demonstrations pooled; the
+        candidate constraints are the cost basis, the model the learners' solver.
+        """
+        reward = self.reward_basis().weighted(self.evaluation.true_reward_weights)
+        return {name: GreedyConstraintInference(
+                    solver=self.solver, reward=reward, cost_basis=self.cost_basis,
+                    demonstrations=self.demos, model=GRID_BASELINES[name],
+                    epsilon=self.baseline_epsilon, max_constraints=self.baseline_max_constraints,
+                    progress=progress)
+                for name in self.baseline_names}
+
+    def baseline_row(self, name: str, result: GreedyResult) -> tuple[dict, list[dict]]:
+        """A finished greedy baseline's table row and its per-step history (FPR, FNR and
+        log-likelihood after each constraint added)."""
+        ev = self.evaluation
+        mask = torch.zeros_like(result.constraint_mask)
+        history = []
+        for k, ll in enumerate(result.log_likelihood):
+            if k:
+                mask[result.added[k - 1]] = True
+            history.append({"step": k, "added": result.added_names[k - 1] if k else None,
+                            "log_likelihood": ll,
+                            "improvement": result.improvement[k - 1] if k else None,
+                            **ev.rates(mask)})
+        row = ev.rollout(result.solution.policy_at)
+        row.update(ev.rates(result.constraint_mask), RFD=None, SR=None,
+                   n_learned=len(result.added), stop_reason=result.stop_reason)
+        row["constraints"] = constraint_names(self.cost_basis.names,
+                                              result.constraint_mask.double(), 0.5)
+        return row, history
+
+    # ------------------------------------------------------------------ figures
+    def evaluation_settings(self) -> dict[str, Any]:
+        """What a trained method's rows depend on besides its state and the training
+        config (which holds the rollouts' seed): a checkpointed row is reused only
+        under the same settings."""
+        return {"threshold": self.threshold, "eval_episodes": self.evaluation.episodes,
+                "prune_min_gain": None if self.prune_min_gain is None
+                else float(self.prune_min_gain)}
+
+    def figures(self, *, methods: dict, histories: dict, experiment: str,
+                eval_every: int) -> dict[str, np.ndarray]:
+        """The paper's Fig. 2 for this run: 2a, the experts' visitation with the true
+        constraints; 2b, the same with each bi-level learner's learned constraints (after
+        pruning); 2c-2g, the metric curves over outer iterations, greedy baselines and
+        experts as reference lines.
+
+        ``methods``: the table (rows by method), ``histories``: ``results.json``'s history.
+        Bi-level methods are those with an outer-iteration history.
+        """
+        bilevel = [k for k in methods if k in histories and k not in GRID_BASELINES]
+        colour = "colour: share of expert trajectories entering the cell"
+        held = self.demos
+        if held is None:  # torchrun's rank 0 with private shard files reads only its own
+            held = next(s for s in self.shards if s is not None)
+            colour += " (learner 1's file)"
+        visits = state_visitation(held.states, self.layout.n_cells)
+        regions = self.cost_basis.region_cells
+        images = {"fig2a_true_visitation": visitation_heatmap(
+            self.layout, visits, constraint_cells=obstacle_cells(self.layout),
+            title=f"Fig. 2a: the true CMG, its constraints (x)\n{colour}")}
+        panels = []
+        for name in bilevel:
+            rows = methods[name]["learners"]
+            for v, row in enumerate(rows):
+                who = f"{name} learner {v + 1}" if len(rows) > 1 else name
+                # Action and collision constraints have no cell to cross: named in the title.
+                off_grid = [n for n in row["constraints"]
+                            if not constraint_cells(self.layout, [n], regions)]
+                listed = ", ".join(off_grid[:4]) + (f" and {len(off_grid) - 4} more"
+                                                    if len(off_grid) > 4 else "")
+                rates = ", ".join(f"{k} {'N/A' if row[k] is None else format(row[k], '.2f')}"
+                                  for k in ("FPR", "FNR"))
+                panels.append(visitation_heatmap(
+                    self.layout, visits,
+                    constraint_cells=constraint_cells(self.layout, row["constraints"], regions),
+                    title=f"Fig. 2b: {who}, learned constraints (x)\n"
+                          f"not on a cell: {listed or 'none'}\n"
+                          f"{rates} (after pruning)\n{colour}"))
+        if panels:
+            images["fig2b_learned_constraints"] = side_by_side(panels)
+        if bilevel:
+            images["fig2c-g_metric_curves"] = metric_curves(
+                {k: histories[k] for k in bilevel},
+                final_rows={k: methods[k]["learners"] for k in bilevel},
+                baselines={k: methods[k]["learners"][0] for k in GRID_BASELINES
+                           if k in methods},
+                experts={k: m["learners"][0] for k, m in methods.items()
+                         if k not in histories},
+                title=f"{experiment}: {self.layout.n_experts} expert(s), {len(self.split)} "
+                      f"learner(s) holding {self.split} of {sum(self.split)} demonstrations "
+                      f"(CR, CVR: {self.evaluation.episodes} episodes every {eval_every} "
+                      f"outer iterations)")
+        return images

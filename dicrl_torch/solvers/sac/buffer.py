@@ -1,0 +1,328 @@
+"""The SAC solver's replay buffer: features stored, rewards relabelled on sampling.
+
+See :mod:`dicrl_torch.solvers.sac` ("No stale rewards", "Absorbing termination").
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.vec_env import VecNormalize
+from torch import nn
+
+from dicrl_torch.demos.drone_demos import DroneDemonstrations
+from dicrl_torch.envs.drones import N_DRONES, joint_obs_to_state
+from dicrl_torch.solvers.sac.checks import _check_fraction, _check_gamma, _weights
+from dicrl_torch.solvers.sac.features import (
+    STATE_SHAPE,
+    _basis_dim,
+    _drone_shares,
+    _features,
+    joint_obs_from_states,
+)
+from dicrl_torch.solvers.sac.state import (
+    array_of,
+    check_optional_array,
+    check_tensor,
+    optional_array,
+    optional_tensor,
+    tensor_of,
+    torch_dtype,
+)
+
+__all__ = ["FeatureReplayBuffer"]
+
+
+class FeatureReplayBuffer(ReplayBuffer):
+    """SB3 replay buffer that stores features, not rewards, and relabels on sampling.
+
+    Per transition it keeps, besides SB3's fields, ``next_states [2, 4]`` float64 (from
+    ``info["state"]``, or the observation when absent), ``reward_features [l_r]`` and
+    ``cost_features [l_c]`` of the next state, and ``reward_scale``: ``1 / (1 - γ)`` for
+    a terminal transition when ``absorbing`` (see the module docstring), else 1. The
+    reward SB3's ``add`` receives is ignored.
+
+    :meth:`sample` returns rewards ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` from the weights
+    of the last :meth:`set_weights`, computed in float64 then cast to float32: ``[B, 1]``,
+    or with ``per_drone`` ``[B, N_DRONES]``, each drone's share of that sum (the bases'
+    ``drone_shares()``; the shared proximity split equally), for a per-drone critic. After
+    :meth:`set_demonstrations`, a fixed share of every batch is drawn from the learner's
+    own demonstrated transitions, relabelled the same way.
+
+    Args:
+        buffer_size, observation_space, action_space, device, n_envs,
+            optimize_memory_usage, handle_timeout_termination: as SB3's ``ReplayBuffer``
+            (``optimize_memory_usage`` is not supported).
+        reward_basis: basis of ``φ_r`` (``l_r`` features).
+        cost_basis: basis of ``φ_c`` (``l_c`` features).
+        gamma: discount, for the absorbing terminal value.
+        absorbing: treat terminal states as absorbing.
+        feature_dtype: storage dtype of the features (float32 halves the memory of
+            float64; indicator features are exact either way).
+        per_drone: sample one reward column per drone (the bases must give
+            ``drone_shares()``).
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: torch.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        *,
+        reward_basis: nn.Module,
+        cost_basis: nn.Module,
+        gamma: float,
+        absorbing: bool = True,
+        feature_dtype: Any = np.float32,
+        per_drone: bool = False,
+    ) -> None:
+        if optimize_memory_usage:
+            raise ValueError(
+                "FeatureReplayBuffer does not support optimize_memory_usage=True (it keeps "
+                "next observations per transition); pass optimize_memory_usage=False."
+            )
+        super().__init__(buffer_size, observation_space, action_space, device, n_envs,
+                         False, handle_timeout_termination)
+        self.reward_basis, self.cost_basis = reward_basis, cost_basis
+        self.l_r = _basis_dim(reward_basis, "reward_basis")
+        self.l_c = _basis_dim(cost_basis, "cost_basis")
+        self.gamma = _check_gamma(gamma)
+        self.absorbing = bool(absorbing)
+        if not isinstance(per_drone, bool):
+            raise ValueError(f"per_drone must be a bool, got {per_drone!r}.")
+        # [l, G] share of each feature's reward per reward column (G = 1: the joint reward).
+        self.shares: tuple[np.ndarray, np.ndarray] | None = None
+        if per_drone:
+            self.shares = (_drone_shares(reward_basis, "reward_basis"),
+                           _drone_shares(cost_basis, "cost_basis"))
+        self.n_rewards = N_DRONES if per_drone else 1
+        shape = (self.buffer_size, self.n_envs)
+        self.next_states = np.zeros((*shape, *STATE_SHAPE), dtype=np.float64)
+        self.reward_features = np.zeros((*shape, self.l_r), dtype=feature_dtype)
+        self.cost_features = np.zeros((*shape, self.l_c), dtype=feature_dtype)
+        self.reward_scale = np.ones(shape, dtype=np.float64)
+        self.reward_weights: np.ndarray | None = None
+        self.multiplier: float | None = None
+        self.cost_weights: np.ndarray | None = None
+        self.last_sample_indices: tuple[np.ndarray, np.ndarray] | None = None
+        """``(batch_inds, env_indices)`` of the last :meth:`sample`'s transitions from
+        the env, for inspection."""
+        self.demo_fraction = 0.0
+        self._demo: dict[str, np.ndarray] | None = None
+
+    def set_weights(self, reward_weights: Any, multiplier: Any, cost_weights: Any) -> None:
+        """Set ``ω_r [l_r]``, ``λ`` and ``ω_c [l_c]``; every later sample uses them."""
+        self.reward_weights = _weights(reward_weights, "reward_weights", self.l_r)
+        try:
+            lam = float(multiplier)  # also a 1-element array or tensor
+        except (TypeError, ValueError):
+            lam = float("nan")
+        if not math.isfinite(lam):
+            raise ValueError(f"multiplier (λ) must be a finite float, got {multiplier!r}.")
+        self.multiplier = lam
+        self.cost_weights = _weights(cost_weights, "cost_weights", self.l_c)
+
+    def add(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray,
+            reward: np.ndarray, done: np.ndarray, infos: list[dict[str, Any]]) -> None:
+        """Store a step of all ``n_envs`` envs with the features of the next states."""
+        # SB3 replaces next_obs of done envs by their terminal observation but leaves
+        # infos alone: info["state"] is the (float64) state the step ended in.
+        states = joint_obs_to_state(np.asarray(next_obs, dtype=np.float64))
+        states = np.array(states)
+        for i, info in enumerate(infos):
+            if info.get("state") is not None:
+                states[i] = info["state"]
+        pos = self.pos
+        self.next_states[pos] = states
+        self.reward_features[pos] = _features(self.reward_basis, states)
+        self.cost_features[pos] = _features(self.cost_basis, states)
+        timeout = np.array([bool(info.get("TimeLimit.truncated", False)) for info in infos])
+        terminal = np.asarray(done, dtype=bool).reshape(-1) & ~timeout
+        self.reward_scale[pos] = np.where(terminal & self.absorbing,
+                                          1.0 / (1.0 - self.gamma), 1.0)
+        super().add(obs, next_obs, action, np.zeros_like(reward, dtype=np.float32), done, infos)
+
+    def compute_rewards(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
+        """``[B]`` float64 (joint) rewards of stored transitions under the current weights."""
+        return self._stored_rewards(batch_inds, env_indices).sum(-1)
+
+    def _stored_rewards(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
+        """``[B, n_rewards]`` float64 rewards of stored transitions (see :meth:`_relabel`)."""
+        return self._relabel(self.reward_features[batch_inds, env_indices],
+                             self.cost_features[batch_inds, env_indices],
+                             self.reward_scale[batch_inds, env_indices])
+
+    def _relabel(self, phi_r: np.ndarray, phi_c: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """``[B, n_rewards]`` float64 ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` under the
+        current weights, split into per-drone shares when ``per_drone``."""
+        if self.reward_weights is None:
+            raise RuntimeError(
+                "FeatureReplayBuffer has no weights yet; call set_weights(reward_weights, "
+                "multiplier, cost_weights) before sampling."
+            )
+        phi_r, phi_c = phi_r.astype(np.float64), phi_c.astype(np.float64)
+        if self.shares is None:  # the joint reward exactly as before (no [l, 1] matmul)
+            r = phi_r @ self.reward_weights + self.multiplier * (phi_c @ self.cost_weights)
+            return (scale * r)[:, None]
+        share_r, share_c = self.shares
+        r = (phi_r @ (self.reward_weights[:, None] * share_r)
+             + self.multiplier * (phi_c @ (self.cost_weights[:, None] * share_c)))
+        return scale[:, None] * r
+
+    def set_demonstrations(self, demos: DroneDemonstrations | None, fraction: float) -> None:
+        """Mix demonstrated transitions into every batch (``None`` removes them).
+
+        Each pair of length ``L`` gives ``L`` transitions ``(o_t, a_t, o_{t+1})``, the
+        last one terminal (both drones done; absorbing when the buffer is), with the
+        features of ``s_{t+1}``: the same record as an env transition, so the same
+        relabelling applies. SAC is off-policy, so this leaves the soft-optimal policy
+        it converges to unchanged; it shows the critic routes round the obstacles that
+        its own exploration, starting from a policy that flies straight, rarely finds.
+
+        Args:
+            demos: the learner's own pairs (never another learner's).
+            fraction: share of each batch drawn from them, in ``[0, 1)``.
+        """
+        fraction = _check_fraction(fraction, "fraction")
+        if demos is None:
+            self._demo, self.demo_fraction = None, 0.0
+            return
+        if not isinstance(demos, DroneDemonstrations):
+            raise ValueError(f"demos must be DroneDemonstrations, got {type(demos).__name__}.")
+        lengths = np.asarray(demos.lengths)
+        pair = np.repeat(np.arange(demos.n_pairs), lengths)  # [n] transition -> pair
+        t = np.concatenate([np.arange(n) for n in lengths])  # [n] its step in the pair
+        states, next_states = demos.states[pair, t], demos.states[pair, t + 1]
+        terminal = t == lengths[pair] - 1
+        self._demo = {
+            "obs": joint_obs_from_states(states),
+            "next_obs": joint_obs_from_states(next_states),
+            "actions": np.asarray(demos.actions[pair, t], dtype=np.float32).reshape(
+                len(t), 2 * N_DRONES),
+            "dones": terminal.astype(np.float32),
+            "phi_r": _features(self.reward_basis, next_states),
+            "phi_c": _features(self.cost_basis, next_states),
+            "scale": np.where(terminal & self.absorbing, 1.0 / (1.0 - self.gamma), 1.0),
+        }
+        self.demo_fraction = fraction
+
+    def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
+        """A batch of ``batch_size`` transitions: ``round(demo_fraction · batch_size)``
+        demonstrated ones (if any) after those from the env."""
+        n_demo = 0 if self._demo is None else int(round(batch_size * self.demo_fraction))
+        online = super().sample(batch_size - n_demo, env=env)
+        if n_demo == 0:
+            return online
+        d = self._demo
+        idx = np.random.randint(0, len(d["dones"]), size=n_demo)  # noqa: NPY002 (as SB3)
+        demo = self._samples(
+            d["obs"][idx], d["actions"][idx], d["next_obs"][idx], d["dones"][idx],
+            self._relabel(d["phi_r"][idx], d["phi_c"][idx], d["scale"][idx]), env)
+        return ReplayBufferSamples(*(torch.cat(pair)
+                                     for pair in zip(online[:5], demo[:5], strict=True)))
+
+    def _samples(self, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray,
+                 dones: np.ndarray, rewards: np.ndarray,
+                 env: VecNormalize | None) -> ReplayBufferSamples:
+        """SB3's batch from ``[B, ...]`` arrays: normalised, float32 rewards
+        ``[B, n_rewards]``."""
+        data = (self._normalize_obs(obs, env), actions, self._normalize_obs(next_obs, env),
+                dones.reshape(-1, 1),
+                self._normalize_reward(rewards.astype(np.float32), env))
+        return ReplayBufferSamples(*tuple(map(self.to_torch, data)))
+
+    def _get_samples(self, batch_inds: np.ndarray,
+                     env: VecNormalize | None = None) -> ReplayBufferSamples:
+        # As SB3's ReplayBuffer._get_samples (global numpy stream for the env index, which
+        # the solver makes private), with the rewards relabelled from the features.
+        env_indices = np.random.randint(0, high=self.n_envs,  # noqa: NPY002 (as SB3)
+                                        size=(len(batch_inds),))
+        self.last_sample_indices = (np.asarray(batch_inds), env_indices)
+        return self._samples(
+            self.observations[batch_inds, env_indices, :],
+            self.actions[batch_inds, env_indices, :],
+            self.next_observations[batch_inds, env_indices, :],
+            self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices]),
+            self._stored_rewards(batch_inds, env_indices), env)
+
+    # ---- state ----------------------------------------------------------------------
+    _STORED = ("observations", "next_observations", "actions", "rewards", "dones",
+               "timeouts", "next_states", "reward_features", "cost_features", "reward_scale")
+    """The per-transition arrays (``[buffer_size, n_envs, ...]``)."""
+    _FRESH = {"reward_scale": 1.0}  # what a new buffer holds in the rows not filled yet (else 0)
+    _DEMO = ("obs", "next_obs", "actions", "dones", "phi_r", "phi_c", "scale")
+
+    def state_dict(self) -> dict[str, Any]:
+        """What sampling and storing read, as tensors and plain values: the filled rows
+        of the stored transitions (a new buffer holds its defaults in the others),
+        ``pos``, ``full``, the weights, the demonstrated transitions and their share, and
+        the last sample's indices."""
+        n = self.buffer_size if self.full else self.pos
+        demo = self._demo
+        last = self.last_sample_indices
+        return {
+            "pos": int(self.pos), "full": bool(self.full),
+            "stored": {name: tensor_of(getattr(self, name)[:n]) for name in self._STORED},
+            "reward_weights": optional_tensor(self.reward_weights),
+            "multiplier": self.multiplier,
+            "cost_weights": optional_tensor(self.cost_weights),
+            "demo_fraction": float(self.demo_fraction),
+            "demo": None if demo is None else {k: tensor_of(demo[k]) for k in self._DEMO},
+            "last_sample_indices": None if last is None else [tensor_of(a) for a in last],
+        }
+
+    def check_state(self, sd: dict[str, Any]) -> None:
+        """A ValueError naming the first field of a :meth:`state_dict` that does not fit
+        this buffer (its size, envs, features or dtypes)."""
+        pos, full = int(sd["pos"]), bool(sd["full"])
+        if not 0 <= pos < self.buffer_size:
+            raise ValueError(f"replay buffer: the state's pos {pos} lies outside this "
+                             f"buffer's {self.buffer_size} rows per env (buffer_size / "
+                             f"n_envs); load a state saved by a solver built with the same "
+                             f"arguments.")
+        n = self.buffer_size if full else pos
+        for name in self._STORED:
+            mine = getattr(self, name)
+            check_tensor(f"replay buffer field {name!r}", sd["stored"][name],
+                         (n, *mine.shape[1:]), torch_dtype(mine.dtype))
+        check_optional_array("replay buffer reward_weights", sd["reward_weights"],
+                             np.zeros(self.l_r) if sd["reward_weights"] is not None else None)
+        check_optional_array("replay buffer cost_weights", sd["cost_weights"],
+                             np.zeros(self.l_c) if sd["cost_weights"] is not None else None)
+        if sd["demo"] is not None:
+            k = int(sd["demo"]["dones"].shape[0])
+            mine = {"obs": (k, *self.obs_shape), "next_obs": (k, *self.obs_shape),
+                    "actions": (k, self.action_dim), "dones": (k,), "phi_r": (k, self.l_r),
+                    "phi_c": (k, self.l_c), "scale": (k,)}
+            for key, shape in mine.items():
+                check_tensor(f"replay buffer demonstrations {key!r}", sd["demo"][key], shape,
+                             sd["demo"][key].dtype)
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        """Set this buffer to a :meth:`state_dict` (checked first)."""
+        self.check_state(sd)
+        self.pos, self.full = int(sd["pos"]), bool(sd["full"])
+        n = self.buffer_size if self.full else self.pos
+        for name in self._STORED:
+            arr = getattr(self, name)
+            arr[:n] = array_of(sd["stored"][name])
+            arr[n:] = self._FRESH.get(name, 0)
+        self.reward_weights = optional_array(sd["reward_weights"])
+        self.multiplier = None if sd["multiplier"] is None else float(sd["multiplier"])
+        self.cost_weights = optional_array(sd["cost_weights"])
+        self.demo_fraction = float(sd["demo_fraction"])
+        demo = sd["demo"]
+        self._demo = None if demo is None else {k: array_of(demo[k]) for k in self._DEMO}
+        last = sd["last_sample_indices"]
+        self.last_sample_indices = None if last is None else (array_of(last[0]),
+                                                              array_of(last[1]))
