@@ -379,6 +379,29 @@ def misfit_options(cfg) -> dict[str, str]:
     return problems
 
 
+def _check_launch(cfg, problems: list[str]) -> None:
+    """How the processes were started must fit ``comm`` and ``split``: torchrun starts one
+    process per learner, each running only its own (``comm=distributed``)."""
+    world = os.environ.get("WORLD_SIZE")
+    if world is None or not world.isdigit():
+        return
+    try:
+        simulated = is_simulated(cfg)
+    except Exception:  # noqa: BLE001 - a bad comm target is reported by the key checks
+        return
+    split = cfg.get("split")
+    if simulated and int(world) > 1:
+        problems.append(f"Started as one of WORLD_SIZE={world} processes (torchrun?) with "
+                        f"comm={cfg.comm._target_}, which runs every learner in each "
+                        f"process; add comm=distributed.")
+    elif (not simulated and "RANK" in os.environ and OmegaConf.is_list(split)
+          and int(world) != len(split)):
+        problems.append(f"torchrun started WORLD_SIZE={world} processes but "
+                        f"split={_plain(split)} has {len(split)} learners (one process per "
+                        f"learner); run torchrun with --nproc_per_node {len(split)} (times "
+                        f"the nodes), or change split.")
+
+
 def check_config(cfg: DictConfig) -> None:
     """Refuse options of another environment, unknown keys and out-of-range values
     before anything is computed.
@@ -440,6 +463,7 @@ def check_config(cfg: DictConfig) -> None:
         elif not is_simulated(cfg):
             problems.append("algo.run_d_icrl=false trains no learner processes, so "
                             "comm=distributed has nothing to run; use comm=simulated.")
+    _check_launch(cfg, problems)
     if problems:
         raise ConfigError(f"{len(problems)} problem(s) in the configuration, nothing was "
                           f"computed:\n" + "\n".join(f"  - {p}" for p in problems))

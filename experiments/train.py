@@ -7,16 +7,13 @@ the paper's table.
     python experiments/train.py comm=distributed       # one process per learner (spawned here)
     torchrun --standalone --nproc_per_node N_L experiments/train.py comm=distributed
 
-Writes ``results.json`` (docs/design.md §8), TensorBoard runs (``tb/``), figures and the
-demonstrations into the Hydra run directory and prints the table. This file only reads
-the config, builds the objects (``common``) and calls the runner
-(:mod:`dicrl_torch.runs.runner`), which does the rest the same way for every environment.
+Writes ``results.json``, TensorBoard runs (``tb/``), figures and the demonstrations into
+the Hydra run directory and prints the table. This file only reads the config, builds the
+objects (``common``) and calls the runner (:mod:`dicrl_torch.runs.runner`).
 
-Robustness: the config is checked before anything is computed (exit code 2). A first
-SIGINT/SIGTERM finishes the outer iteration, checkpoints it and exits with 128 + the
-signal number, printing the command that resumes; a second one stops at once. A NaN or
-inf stops the run (exit 1) naming the outer iteration, the inner step and the learner.
-With ``comm=distributed``, learner ``v`` is process ``v``: started here or by torchrun.
+The config is checked before anything is computed (exit code 2); a first SIGINT/SIGTERM
+checkpoints and exits with 128 + the signal, printing the command that resumes; a NaN or
+inf exits with 1 naming where it arose (docs/design.md §8).
 """
 
 from __future__ import annotations
@@ -95,8 +92,7 @@ def spawned_learner(rank: int, world_size: int, init_method: str, cfg_yaml: str,
     """Body of a learner process started by :func:`spawn_learners`."""
     from tqdm import tqdm
 
-    # tqdm's default multiprocessing lock would be a named semaphore here (spawned
-    # process), which the process's final os._exit leaks; a thread lock suffices.
+    # tqdm's default lock, a named semaphore here, leaks at os._exit: a thread lock will do.
     tqdm.set_lock(threading.RLock())
     interrupt_on_signals()
     cfg = OmegaConf.create(cfg_yaml)
@@ -136,11 +132,6 @@ def run_spawned(cfg, out: Path, t_start: float) -> None:
 def run_torchrun(cfg, out: Path, t_start: float) -> None:
     """A process started by torchrun: learner ``RANK``; rank 0 also finishes the run."""
     rank, world_size = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
-    if world_size != len(cfg.split):
-        raise ValueError(
-            f"torchrun started WORLD_SIZE={world_size} processes but split={list(cfg.split)} "
-            f"has {len(cfg.split)} learners (one process per learner); run torchrun with "
-            f"--nproc_per_node {len(cfg.split)} (times the nodes), or change split.")
     interrupt_on_signals()
     try:
         comm = build(cfg.comm, rank=rank, world_size=world_size)  # init_method env://
@@ -197,10 +188,6 @@ def main(cfg: DictConfig) -> None:
         sys.exit(2)
     torch.set_num_threads(int(os.environ.get("DICRL_THREADS", torch.get_num_threads())))
     if is_simulated(cfg):
-        if int(os.environ.get("WORLD_SIZE", "1")) > 1:
-            raise ValueError(f"Started as one of WORLD_SIZE={os.environ['WORLD_SIZE']} "
-                             f"processes (torchrun?) with comm={cfg.comm._target_}, which runs "
-                             f"every learner in each process; add comm=distributed.")
         run_simulated(cfg, out, t_start)
     elif "RANK" in os.environ and "WORLD_SIZE" in os.environ:
         run_torchrun(cfg, out, t_start)

@@ -1,0 +1,556 @@
+"""Which cost features can the demonstrations identify as constraints? (docs/design.md §6)
+
+An evaluation-only analysis: it is given the true reward and the experts' model (their
+temperature), which no learner ever sees. For a cost basis, the nominal model, P0 and a
+set of demonstrations ``D`` (all that the learners hold together), every feature ``j``
+falls in one class:
+
+- **demonstrated**: some trajectory of ``D`` accrues ``φ_j`` (``φ_j > 0`` at a visited
+  ``(s_t, a_t)``, ``t < T``, or — for a state feature — at ``s_T``: the rule of
+  :func:`dicrl_torch.algos.greedy.demonstrated_features`), or P0 puts mass on a state
+  where the state feature ``φ_j`` is positive. With budget 0 such a feature cannot be a
+  constraint. ``U`` is the set of the other features.
+- **required**: ``j ∈ U`` and the experts' policy, with every *other* feature of ``U``
+  enforced as a hard constraint (``U \\ {j}``, masked as
+  :func:`dicrl_torch.algos.greedy.constraint_masks` does), still accrues ``φ_j`` with
+  probability at least ``min_probability`` (0.01) per trajectory from P0. Even with
+  everything else the data leave unseen forbidden the experts would use ``j``, so every
+  constraint set consistent with ``D`` must contain it.
+- **undetermined**: the rest of ``U``: ``D`` cannot tell whether it is a constraint.
+
+**The probability of accruing a feature** (:func:`accrual_probability`) is not its
+expected (discounted) count: it is ``P(∃ t < T: φ_j(s_t, a_t) > 0, or φ_j(s_T) > 0 for a
+state feature)`` under the policy and the nominal dynamics, computed exactly by a
+forward pass on the chain in which the mass that accrues ``φ_j`` is removed at the step
+it does so (the removed mass, summed, is the probability). The chain is kept sparse:
+only joint states that still carry mass are visited, and the policy is read there with
+:meth:`~dicrl_torch.solvers.factored.SoftBellmanSolution.policy_at` — the very policy
+:func:`~dicrl_torch.solvers.experts.sample_trajectories` samples from (hard max with
+uniform ties at temperature 0, soft-optimal above). With optimal experts from a few start
+states the support stays small, so a candidate costs about one backward solve. Joint
+features (the collision) are removed on the joint state like any other.
+
+**The experts' model under a constraint set.** The experts of
+:func:`~dicrl_torch.solvers.experts.expert_solution` mask the true CMG's constraints;
+here the mask is ``U \\ {j}`` instead: ``-inf`` reward on every pair where one of its
+features is positive and ``-inf`` terminal value where one of its *state* features is,
+solved at the experts' temperature. When the experts cannot avoid ``U \\ {j}`` surely
+from some start state of P0 (``V_0 = -inf`` there), the hard-constrained model is
+undefined: ``j`` is reported ``undetermined`` with probability NaN and flagged in
+``infeasible``.
+
+**P0.** ``initial_distribution`` is a joint distribution (``[S1]*N``) or one per expert
+(``[N, S1]``, independent starts); by default the model's (a point mass on the start
+cells). Every demonstration must start where P0 has mass.
+
+**Cost.** One backward solve per classified feature plus the sparse forward pass
+(measured in docs/experiments.md; ``experiments/identifiability.py`` prints it).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from dicrl_torch.algos.greedy import constraint_masks, demonstrated_features, is_state_feature
+from dicrl_torch.demos.storage import Demonstrations
+from dicrl_torch.envs.grid import TabularGridModel, decode_joint, encode_joint
+from dicrl_torch.features.bases import FactoredFeatures, FactoredReward, FeatureBasis
+from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
+
+__all__ = [
+    "Identifiability",
+    "accrual_probability",
+    "classify_features",
+    "fnr_required",
+    "joint_initial_distribution",
+]
+
+MIN_PROBABILITY = 0.01
+# Joint states per policy query of the forward pass (bounds memory at 3 experts:
+# a query holds [B, (1 + A1)^N] values).
+_CHUNK_STATES = 4096
+
+
+# ------------------------------------------------------------------------ result
+@dataclass(frozen=True)
+class Identifiability:
+    """The classes of a basis's cost features (module docstring).
+
+    ``demonstrated``, ``required`` and ``undetermined`` partition ``scope``: the
+    features classified (every feature, or those asked for with ``only``, or a
+    :meth:`restrict`-ion).
+
+    Attributes:
+        names: ``[l]`` feature labels.
+        scope: ``[l]`` bool, the features classified.
+        demonstrated, required, undetermined: ``[l]`` bool masks.
+        probability: ``[l]`` float64, the probability per trajectory from P0 that the
+            experts under ``U \\ {j}`` accrue ``φ_j``; NaN where not computed
+            (demonstrated, out of scope, infeasible).
+        infeasible: ``[l]`` bool (within ``undetermined``): the experts cannot avoid
+            ``U \\ {j}`` surely from P0, so there is no hard-constrained model to ask.
+        min_probability: the threshold of ``required``.
+        temperature: the experts' temperature (0: optimal, uniform ties).
+        seconds: wall time of the classification; ``n_solves`` its backward solves.
+    """
+
+    names: list[str]
+    scope: torch.Tensor
+    demonstrated: torch.Tensor
+    required: torch.Tensor
+    undetermined: torch.Tensor
+    probability: torch.Tensor
+    infeasible: torch.Tensor
+    min_probability: float = MIN_PROBABILITY
+    temperature: float = 0.0
+    seconds: float = 0.0
+    n_solves: int = 0
+
+    @property
+    def n_features(self) -> int:
+        """Features classified (``|scope|``)."""
+        return int(self.scope.sum())
+
+    @property
+    def n_demonstrated(self) -> int:
+        return int(self.demonstrated.sum())
+
+    @property
+    def n_required(self) -> int:
+        return int(self.required.sum())
+
+    @property
+    def n_undetermined(self) -> int:
+        return int(self.undetermined.sum())
+
+    @property
+    def seconds_per_candidate(self) -> float | None:
+        """Mean wall time of one candidate (solve + forward pass); None without any."""
+        return self.seconds / self.n_solves if self.n_solves else None
+
+    def names_of(self, mask: torch.Tensor) -> list[str]:
+        """The labels of the features in ``mask`` ``[l]`` bool."""
+        return [self.names[j] for j in torch.nonzero(_as_mask(mask, len(self.names),
+                                                              "mask")).flatten().tolist()]
+
+    def restrict(self, mask) -> Identifiability:
+        """The classification of the features in ``mask`` ``[l]`` bool only (e.g. the
+        true constraints, ``cost_basis.true_constraints()``); probabilities outside
+        become NaN."""
+        mask = _as_mask(mask, len(self.names), "mask")
+        return replace(self, scope=self.scope & mask, demonstrated=self.demonstrated & mask,
+                       required=self.required & mask, undetermined=self.undetermined & mask,
+                       infeasible=self.infeasible & mask,
+                       probability=torch.where(mask, self.probability, math.nan))
+
+    def summary(self) -> str:
+        """One line: the counts and the undetermined features."""
+        und = ", ".join(self.names_of(self.undetermined)) or "none"
+        return (f"{self.n_features} features: {self.n_demonstrated} demonstrated, "
+                f"{self.n_required} required, {self.n_undetermined} undetermined ({und})")
+
+    def as_dict(self) -> dict:
+        """A JSON-ready record: counts, the members of each class and the computed
+        probabilities by name."""
+        prob = {self.names[j]: float(self.probability[j])
+                for j in range(len(self.names)) if math.isfinite(self.probability[j])}
+        return {
+            "n_features": self.n_features, "n_demonstrated": self.n_demonstrated,
+            "n_required": self.n_required, "n_undetermined": self.n_undetermined,
+            "demonstrated": self.names_of(self.demonstrated),
+            "required": self.names_of(self.required),
+            "undetermined": self.names_of(self.undetermined),
+            "infeasible": self.names_of(self.infeasible),
+            "probability": prob, "min_probability": self.min_probability,
+            "temperature": self.temperature, "seconds": self.seconds,
+            "n_solves": self.n_solves,
+        }
+
+
+def fnr_required(learned, true, result: Identifiability) -> float | None:
+    """``|required ∩ true \\ learned| / |required ∩ true|``: the misses among the true
+    constraints the data pin down (docs/design.md §6).
+
+    Args:
+        learned, true: ``[l]`` bool masks (tensors or arrays); ``true`` may be None.
+        result: a classification whose scope covers ``true``.
+
+    Returns:
+        The rate, or None when ``true`` is None or no true constraint is required.
+    """
+    if true is None:
+        return None
+    l = len(result.names)
+    learned, true = _as_mask(learned, l, "learned"), _as_mask(true, l, "true")
+    outside = true & ~result.scope
+    if outside.any():
+        raise ValueError(f"The classification does not cover the true constraints "
+                         f"{result.names_of(outside)}; classify them too (classify_features("
+                         f"..., only=None or only=true)).")
+    pinned = result.required & true
+    n = int(pinned.sum())
+    return float((pinned & ~learned).sum()) / n if n else None
+
+
+def _as_mask(mask, l: int, name: str) -> torch.Tensor:
+    if isinstance(mask, np.ndarray):
+        mask = torch.as_tensor(np.array(mask))
+    if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != (l,):
+        got = (f"{tuple(mask.shape)} {mask.dtype}" if hasattr(mask, "shape")
+               else type(mask).__name__)
+        raise ValueError(f"{name} must be a [{l}] bool mask (tensor or array), got {got}.")
+    return mask.cpu()
+
+
+# ------------------------------------------------------------------------ P0
+def joint_initial_distribution(model: TabularGridModel, p0=None) -> torch.Tensor:
+    """P0 as a checked joint distribution ``[S1]*N`` float64.
+
+    Args:
+        model: the tabular model.
+        p0: None (the model's own: a point mass on the start cells), a joint
+            distribution ``[S1]*N``, or one start distribution per expert ``[N, S1]``
+            (independent starts: their product).
+
+    Raises:
+        ValueError: another shape, negative or non-finite entries, or rows that do not
+            sum to 1.
+    """
+    if p0 is None:
+        return model.initial_distribution()
+    N, S1 = model.n_experts, model.n_cells
+    p = torch.as_tensor(p0, dtype=torch.float64).cpu()
+    if not torch.isfinite(p).all() or (p < 0).any():
+        raise ValueError("initial_distribution must hold finite non-negative probabilities.")
+    if tuple(p.shape) == model.state_shape:
+        joint = p
+    elif tuple(p.shape) == (N, S1):
+        joint = p[0]
+        for i in range(1, N):
+            joint = joint.unsqueeze(-1) * p[i]
+        bad = [i for i in range(N) if abs(float(p[i].sum()) - 1.0) > 1e-9]
+        if bad:
+            raise ValueError(f"initial_distribution [N, S1]: the start distributions of "
+                             f"experts {bad} do not sum to 1; normalise each row.")
+    else:
+        raise ValueError(f"initial_distribution must be a joint distribution of shape "
+                         f"{model.state_shape} or one per expert of shape {(N, S1)}, got "
+                         f"{tuple(p.shape)}.")
+    if abs(float(joint.sum()) - 1.0) > 1e-9:
+        raise ValueError(f"initial_distribution sums to {float(joint.sum()):.6g}, not 1; "
+                         f"normalise it.")
+    return joint
+
+
+# ------------------------------------------------------------------------ probability
+class _Hits:
+    """Where a set of features is positive: per expert ``[N, S1, A1]``, on joint states
+    ``[S]`` (joint part), and on final states ``[S]`` (its state features)."""
+
+    def __init__(self, features: FactoredFeatures, target: torch.Tensor,
+                 model: TabularGridModel, device: torch.device) -> None:
+        N, S1 = model.n_experts, model.n_cells
+        self.local = (features.local[..., target] > 0).any(-1).to(device)  # [N, S1, A1]
+        self.joint = None
+        final = torch.zeros(model.state_shape, dtype=torch.bool)
+        state = target & is_state_feature(features)
+        cell = (features.local[:, :, 0][..., state] > 0).any(-1)  # [N, S1]
+        for i in range(N):
+            shape = [1] * N
+            shape[i] = S1
+            final |= cell[i].reshape(shape)
+        final = final.reshape(-1)
+        if features.joint is not None:
+            cols = target[features.joint_columns]
+            if cols.any():
+                self.joint = (features.joint[:, cols] > 0).any(-1).to(device)  # [S]
+            cols = state[features.joint_columns]
+            if cols.any():
+                final |= (features.joint[:, cols] > 0).any(-1)
+        self.final = final.to(device)
+
+
+def accrual_probability(solution: SoftBellmanSolution, features: FactoredFeatures | FeatureBasis,
+                        target, initial_distribution=None) -> float:
+    """``P(a trajectory accrues some feature of target)`` under the solution's policy.
+
+    A trajectory accrues ``φ_j`` when ``φ_j(s_t, a_t) > 0`` at some ``t < T`` or, for a
+    state feature, ``φ_j(s_T) > 0``. Exact: the forward pass of the chain that drops
+    the mass accruing ``target`` at the step it does so (module docstring), with the
+    policy of ``solution.policy_at`` and the model's nominal dynamics.
+
+    Args:
+        solution: a solve of the model (any temperature, with or without forward pass).
+        features: the cost features (or their basis).
+        target: ``[l]`` bool, the features whose first accrual ends a trajectory's
+            survival, or an int (one feature).
+        initial_distribution: P0 (see :func:`joint_initial_distribution`); default
+            the model's.
+    """
+    features = features() if isinstance(features, FeatureBasis) else features
+    if isinstance(target, int):
+        j = target
+        target = torch.zeros(features.dim, dtype=torch.bool)
+        target[j] = True
+    target = _as_mask(target, features.dim, "target")
+    solver = solution.solver
+    model = solver.model
+    hits = _Hits(features, target, model, solver.device)
+    d = joint_initial_distribution(model, initial_distribution).reshape(-1).to(solver.device)
+    return _killed_forward(solution, hits, d)
+
+
+def _killed_forward(solution: SoftBellmanSolution, hits: _Hits, d: torch.Tensor) -> float:
+    model = solution.solver.model
+    N, S1, A1, T, p = (model.n_experts, model.n_cells, model.n_actions, model.horizon,
+                       model.p_success)
+    device = d.device
+    nxt = model.next_cell.to(device)  # [S1, A1]
+    powers = [S1 ** (N - 1 - i) for i in range(N)]
+    # Move/stay patterns of the N experts with their probabilities.
+    patterns = [(m, p ** sum(m) * (1.0 - p) ** (N - sum(m)))
+                for m in itertools.product((False, True), repeat=N)]
+    patterns = [(m, w) for m, w in patterns if w > 0.0]
+    removed = torch.zeros((), dtype=torch.float64, device=device)
+
+    def axis(x: torch.Tensor, i: int) -> torch.Tensor:  # [B, A1] -> expert i's action axis
+        shape = [x.shape[0]] + [1] * N
+        shape[1 + i] = A1
+        return x.reshape(shape)
+
+    for t in range(T):
+        support = torch.nonzero(d > 0).flatten()
+        if support.numel() == 0:  # every trajectory has accrued it
+            return float(removed)
+        d_next = torch.zeros_like(d)
+        for flat in support.split(_CHUNK_STATES):
+            B = flat.shape[0]
+            cells = decode_joint(flat, S1, N)  # [B, N]
+            mass = d[flat]
+            pi = solution.policy_at(t, cells).to(device, torch.float64)  # [B, A1^N]
+            rho = (mass.unsqueeze(1) * pi).reshape([B] + [A1] * N)
+            acc = torch.zeros([B] + [1] * N, dtype=torch.bool, device=device)
+            for i in range(N):
+                acc = acc | axis(hits.local[i, cells[:, i]], i)
+            if hits.joint is not None:
+                acc = acc | hits.joint[flat].reshape([B] + [1] * N)
+            acc = acc.expand_as(rho)
+            removed += rho[acc].sum()
+            rho = rho.masked_fill(acc, 0.0)
+            for moves, w in patterns:
+                stay_axes = tuple(1 + i for i in range(N) if not moves[i])
+                r = rho.sum(stay_axes, keepdim=True) if stay_axes else rho
+                target = torch.zeros([B] + [1] * N, dtype=torch.int64, device=device)
+                for i in range(N):
+                    c = axis(nxt[cells[:, i]], i) if moves[i] else \
+                        cells[:, i].reshape([B] + [1] * N)
+                    target = target + c * powers[i]
+                target = target.expand_as(r)
+                d_next.index_add_(0, target.reshape(-1), (w * r).reshape(-1))
+        d = d_next
+    removed += d[hits.final].sum()
+    return float(removed)
+
+
+# ------------------------------------------------------------------------ classification
+def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
+                      cost_basis: FeatureBasis | FactoredFeatures,
+                      demonstrations: Demonstrations | Sequence[Demonstrations],
+                      temperature: float = 0.0, initial_distribution=None,
+                      only=None, min_probability: float = MIN_PROBABILITY,
+                      progress: bool = False) -> Identifiability:
+    """Classify cost features as demonstrated, required or undetermined (module
+    docstring).
+
+    Args:
+        solver: the factored solver of the nominal model.
+        reward: the experts' true reward (``reward_basis().weighted(w_true)``).
+        cost_basis: an indicator basis built on ``solver.model`` (shared, per_expert,
+            regions), or its :class:`FactoredFeatures`. Features must be non-negative
+            and vanish somewhere: a feature positive everywhere (a frozen random MLP)
+            is accrued by every trajectory and no class says anything about it.
+        demonstrations: all the demonstrations the learners hold together: one set or
+            a sequence of shards.
+        temperature: the experts' temperature, the one the demonstrations were sampled
+            at (0: optimal experts, uniform over ties).
+        initial_distribution: P0, joint ``[S1]*N`` or per expert ``[N, S1]``; default
+            the model's start cells.
+        only: ``[l]`` bool, classify these features only (e.g. the true constraints:
+            a solve per undemonstrated one instead of per feature of ``U``); ``U`` is
+            still every undemonstrated feature. None: all.
+        min_probability: the per-trajectory probability from which an undemonstrated
+            feature is required.
+        progress: a tqdm bar over the candidates.
+
+    Raises:
+        ValueError: naming the problem and the fix, for a basis of another model or
+            positive everywhere, demonstrations of another grid (cells, actions,
+            experts, horizon) or starting where P0 has no mass, no demonstrations, or
+            a bad P0, temperature, threshold or mask.
+    """
+    if not isinstance(solver, FactoredSoftBellman):
+        raise TypeError(f"solver must be a FactoredSoftBellman, got {type(solver).__name__}.")
+    model = solver.model
+    features, names = _features_of(cost_basis, model)
+    if not isinstance(reward, FactoredReward):
+        raise TypeError(f"reward must be a FactoredReward (e.g. "
+                        f"reward_basis().weighted(w_true)), got {type(reward).__name__}.")
+    want = (model.n_experts, model.n_cells, model.n_actions)
+    if tuple(reward.local.shape) != want:
+        raise ValueError(f"reward.local has shape {tuple(reward.local.shape)}, the solver's "
+                         f"model needs {want}; build the reward on solver.model.")
+    if not (temperature >= 0.0 and math.isfinite(temperature)):
+        raise ValueError(f"temperature must be a finite number >= 0 (the experts' "
+                         f"temperature; 0 for optimal experts), got {temperature!r}.")
+    if not 0.0 < min_probability <= 1.0:
+        raise ValueError(f"min_probability must lie in (0, 1], got {min_probability!r}.")
+    shards = _shards(demonstrations, model)
+    p0 = joint_initial_distribution(model, initial_distribution)
+    _check_starts(shards, p0, model)
+    scope = (torch.ones(features.dim, dtype=torch.bool) if only is None
+             else _as_mask(only, features.dim, "only"))
+
+    t0 = time.perf_counter()
+    demonstrated = torch.zeros(features.dim, dtype=torch.bool)
+    for demos in shards:
+        demonstrated |= demonstrated_features(features, demos, model.gamma)
+    demonstrated |= _p0_features(features, p0, model)
+    unseen = ~demonstrated  # U
+    probability = torch.full((features.dim,), math.nan, dtype=torch.float64)
+    infeasible = torch.zeros(features.dim, dtype=torch.bool)
+    candidates = torch.nonzero(unseen & scope).flatten().tolist()
+    steps = candidates
+    if progress:
+        from tqdm.auto import tqdm
+        steps = tqdm(candidates, desc="identifiability", leave=False)
+    support = p0 > 0
+    d0 = p0.reshape(-1).to(solver.device)
+    for j in steps:
+        others = unseen.clone()
+        others[j] = False
+        mask, terminal = constraint_masks(features, others, model)
+        sol = solver.solve(reward + mask, temperature=temperature, forward=False,
+                           terminal_value=terminal)
+        v0 = sol.V[0].cpu()[support]
+        if not torch.isfinite(v0).all():
+            infeasible[j] = True
+            continue
+        target = torch.zeros(features.dim, dtype=torch.bool)
+        target[j] = True
+        probability[j] = _killed_forward(sol, _Hits(features, target, model, solver.device),
+                                         d0)
+    seconds = time.perf_counter() - t0
+    required = unseen & scope & (probability >= min_probability)
+    return Identifiability(
+        names=names, scope=scope, demonstrated=demonstrated & scope, required=required,
+        undetermined=unseen & scope & ~required, probability=probability,
+        infeasible=infeasible, min_probability=float(min_probability),
+        temperature=float(temperature), seconds=seconds, n_solves=len(candidates))
+
+
+# ------------------------------------------------------------------------ checks
+def _features_of(cost_basis, model: TabularGridModel) -> tuple[FactoredFeatures, list[str]]:
+    if isinstance(cost_basis, FeatureBasis):
+        other = cost_basis.model
+        if other is not model and (other.layout != model.layout
+                                   or other.n_experts != model.n_experts):
+            raise ValueError(
+                f"The cost basis {type(cost_basis).__name__} was built on another model "
+                f"(layout {other.layout.name!r}, {other.layout.size}x{other.layout.size}, "
+                f"{other.n_experts} experts) than the solver's (layout "
+                f"{model.layout.name!r}, {model.layout.size}x{model.layout.size}, "
+                f"{model.n_experts} experts); build it on solver.model, e.g. "
+                f"SharedIndicatorCostBasis(solver.model).")
+        features, names = cost_basis(), list(cost_basis.names)
+    elif isinstance(cost_basis, FactoredFeatures):
+        features, names = cost_basis, [f"feature {j}" for j in range(cost_basis.dim)]
+    else:
+        raise TypeError(f"cost_basis must be a FeatureBasis or FactoredFeatures, got "
+                        f"{type(cost_basis).__name__}.")
+    want = (model.n_experts, model.n_cells, model.n_actions)
+    if tuple(features.local.shape[:3]) != want:
+        raise ValueError(f"The cost features are for {tuple(features.local.shape[:3])} "
+                         f"(experts, cells, actions), the solver's model has {want}; build "
+                         f"the basis on solver.model.")
+    if features.joint is not None and features.joint.shape[0] != model.n_states:
+        raise ValueError(f"The cost features' joint part covers {features.joint.shape[0]} "
+                         f"joint states, the solver's model has {model.n_states}; build the "
+                         f"basis on solver.model.")
+    if features.local.min() < 0 or (features.joint is not None and features.joint.min() < 0):
+        raise ValueError("The cost features must be non-negative: a feature is accrued "
+                         "where it is positive. Use an indicator basis (shared, per_expert, "
+                         "regions).")
+    # φ_j(s, a) >= Σ_i min local_i + min joint: positive everywhere when that is.
+    floor = features.local.amin(dim=(1, 2)).sum(0)
+    if features.joint is not None:
+        floor = floor.index_add(0, features.joint_columns, features.joint.amin(0))
+    everywhere = floor > 0
+    if everywhere.any():
+        bad = [names[j] for j in torch.nonzero(everywhere).flatten().tolist()]
+        shown = ", ".join(bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
+        raise ValueError(
+            f"{len(bad)} cost feature(s) are positive on every state-action pair ({shown}), "
+            f"so every trajectory accrues them and identifiability says nothing about them "
+            f"(e.g. a frozen random MLP basis). Use an indicator basis (shared, per_expert, "
+            f"regions).")
+    return features, names
+
+
+def _shards(demonstrations, model: TabularGridModel) -> list[Demonstrations]:
+    shards = [demonstrations] if isinstance(demonstrations, Demonstrations) else \
+        list(demonstrations) if isinstance(demonstrations, Sequence) else None
+    if shards is None:
+        raise TypeError(f"demonstrations must be a Demonstrations or a sequence of them, "
+                        f"got {type(demonstrations).__name__}.")
+    if not shards:
+        raise ValueError("No demonstrations given: pass at least one set (all the "
+                         "learners' shards together).")
+    for k, demos in enumerate(shards):
+        if not isinstance(demos, Demonstrations):
+            raise TypeError(f"demonstrations[{k}] is a {type(demos).__name__}, not a "
+                            f"Demonstrations.")
+        found = (demos.n_experts, demos.n_cells, demos.n_actions, demos.horizon)
+        want = (model.n_experts, model.n_cells, model.n_actions, model.horizon)
+        if found != want:
+            raise ValueError(
+                f"Demonstrations set {k} has {demos.n_experts} experts on {demos.n_cells} "
+                f"cells with {demos.n_actions} actions over T={demos.horizon}; the solver's "
+                f"model has {model.n_experts} experts, {model.n_cells} cells, "
+                f"{model.n_actions} actions, T={model.horizon}. Sample them from this "
+                f"model (or build the model of the grid they come from).")
+        if demos.n_trajectories == 0:  # pragma: no cover - Demonstrations refuses it
+            raise ValueError(f"Demonstrations set {k} is empty.")
+    return shards
+
+
+def _check_starts(shards: list[Demonstrations], p0: torch.Tensor,
+                  model: TabularGridModel) -> None:
+    flat = p0.reshape(-1)
+    for k, demos in enumerate(shards):
+        starts = encode_joint(torch.from_numpy(demos.states[:, 0].copy()), model.n_cells)
+        off = flat[starts] <= 0
+        if off.any():
+            i = int(torch.nonzero(off)[0])
+            cells = [model.layout.xy(int(c)) for c in demos.states[i, 0]]
+            raise ValueError(
+                f"Demonstration {i} of set {k} starts at {cells}, where P0 has no mass; "
+                f"pass initial_distribution= the P0 the demonstrations were sampled from.")
+
+
+def _p0_features(features: FactoredFeatures, p0: torch.Tensor,
+                 model: TabularGridModel) -> torch.Tensor:
+    """``[l]`` bool: state features positive on some state where P0 has mass."""
+    flat = torch.nonzero(p0.reshape(-1) > 0).flatten()
+    cells = decode_joint(flat, model.n_cells, model.n_experts)  # [K, N]
+    seen = torch.zeros(features.dim, dtype=torch.bool)
+    for chunk in cells.split(_CHUNK_STATES * 16):
+        phi = features.at(chunk, torch.zeros_like(chunk), model.n_cells)  # [K, l]
+        seen |= (phi > 0).any(0)
+    return seen & is_state_feature(features)
