@@ -76,6 +76,9 @@ def _collectives_body(rank, world_size, init_method, seed):
         comm.check_same_config("same configuration")
         gathered = [comm.all_gather(x[rank:rank + 1], "eta") for x in xs]
         mixed = [comm.mix(x[rank:rank + 1], W, "cost_weights") for x in xs for W in Ws]
+        # control values of different lengths per rank (checkpointed iterations)
+        control = comm.gather_control({"rank": rank, "saved": list(range(rank))},
+                                      "checkpointed_iterations")
         comm.barrier()
         # the last rank was started with another configuration
         try:
@@ -84,7 +87,7 @@ def _collectives_body(rank, world_size, init_method, seed):
             mismatch = None
         except ConfigMismatchError as e:
             mismatch = str(e)
-    return gathered, mixed, mismatch
+    return gathered, mixed, mismatch, control
 
 
 def _trainer_body(rank, world_size, init_method, outer_iterations):
@@ -153,7 +156,7 @@ def collectives_run():
 def test_all_gather_and_mix_are_bitwise_equal_to_simulated(collectives_run):
     xs, Ws = random_inputs(SEED, N_COLLECTIVES)
     sim = SimulatedCommunicator(N_COLLECTIVES)
-    for rank, (gathered, mixed, _) in enumerate(collectives_run):
+    for rank, (gathered, mixed, _, _) in enumerate(collectives_run):
         for x, g in zip(xs, gathered, strict=True):
             assert g.dtype == x.dtype and torch.equal(g, sim.all_gather(x, "eta"))
         expected = [sim.mix(x, W, "cost_weights")[rank:rank + 1] for x in xs for W in Ws]
@@ -161,8 +164,25 @@ def test_all_gather_and_mix_are_bitwise_equal_to_simulated(collectives_run):
             assert m.dtype == e.dtype and torch.equal(m, e)
 
 
+def test_control_values_reach_every_rank_in_rank_order(collectives_run):
+    every = [{"rank": r, "saved": list(range(r))} for r in range(N_COLLECTIVES)]
+    for _, _, _, control in collectives_run:
+        assert control == every
+
+
+def test_control_values_are_audited_and_only_known_fields_are_sent():
+    from dicrl_torch.comm.communicator import CONTROL_FIELDS
+
+    sim = SimulatedCommunicator(2, record=True)
+    assert sim.gather_control(["/runs/x", "id"], "run_directory") == [["/runs/x", "id"]] * 2
+    assert [m.field for m in sim.messages] == ["run_directory"]
+    assert set(CONTROL_FIELDS).isdisjoint(ALLOWED_FIELDS)  # never learner data
+    with pytest.raises(ValueError, match="not one a run exchanges"):
+        sim.gather_control([1.0, 2.0], "demonstrations")
+
+
 def test_different_configurations_raise_on_every_rank(collectives_run):
-    for _, _, mismatch in collectives_run:
+    for _, _, mismatch, _ in collectives_run:
         assert mismatch is not None
         assert "ranks [3] differ from ranks [0, 1, 2]" in mismatch
 
