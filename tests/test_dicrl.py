@@ -8,7 +8,7 @@ import pytest
 import tiny_dicrl
 import torch
 
-from dicrl_torch.algos.callbacks import InnerScalars
+from dicrl_torch.algos.callbacks import InnerScalars, TrainerCallback
 from dicrl_torch.algos.dicrl import DICRL, StepSizes
 from dicrl_torch.comm import (
     ALLOWED_FIELDS,
@@ -247,3 +247,27 @@ def test_inner_scalars_are_logged_per_learner(setup):
     # each learner logs its own inner process once per inner gradient: K-1 per outer step
     steps = sorted(s for r, tag, s in rec.rows if r == "learner0" and "dual" in tag)
     assert steps == [0, 1, 3, 4]
+
+
+def test_features_with_p0_mass_keep_zero_cost_weight_at_every_outer_iteration(setup):
+    """The start cells (P0's support) can never be constraints with budget 0: ω_c holds 0
+    there from ω_c(0) on, through every step and consensus, whatever the initial ω_c
+    elsewhere (here 0.2-0.4, without pruning the features the demonstrations accrue)."""
+    t = make(setup)
+    names = setup[2].names
+    assert {names[j] for j in torch.nonzero(t.pinned).flatten()} == {"cell(0,2)", "cell(2,0)"}
+    seen = []
+
+    class Check(TrainerCallback):
+        def on_outer_end(self, trainer, info):
+            seen.append(trainer.state.cost_weights.clone())
+
+    # ω_c(0): 0 at the start cells, the given 0.2 / 0.3 / 0.4 everywhere else
+    start = t.state.cost_weights.clone()
+    assert (start[:, t.pinned] == 0).all()
+    assert torch.allclose(start[:, ~t.pinned], torch.tensor([[0.2], [0.3], [0.4]],
+                                                            dtype=torch.float64))
+    t.train(4, callbacks=[Check()])
+    assert len(seen) == 4
+    for cw in seen:
+        assert (cw[:, t.pinned] == 0).all()

@@ -37,6 +37,9 @@ from dicrl_torch.features.bases import (
 from dicrl_torch.solvers.experts import sample_trajectories
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
+# brute_force builds its sparse transition without invariant checks (a torch warning)
+pytestmark = pytest.mark.filterwarnings("ignore:Sparse invariant checks:UserWarning")
+
 
 # ------------------------------------------------------------------ helpers
 def problem(layout: GridLayout, horizon: int, p: float = 1.0):
@@ -252,6 +255,46 @@ def test_p0_mass_makes_a_feature_demonstrated():
         assert p["cell(1,0)"] == pytest.approx(0.75, abs=1e-12)
         assert p["cell(1,1)"] == pytest.approx(1.0, abs=1e-12)
         assert names(result, result.required) == {"cell(1,0)", "cell(1,1)"}
+
+
+def test_a_start_without_safe_moves_is_infeasible():
+    """3x3 open grid, one expert from (0,0) to (2,0) along the top row: E, E, then NE
+    (off the grid: it stays). Only E and NE and the top row are demonstrated. P0 puts
+    half its mass on (0,2), where no demonstration started: from there E leads to (1,2)
+    and NE to (1,1), both undemonstrated, so whether the expert has a safe move there
+    depends on the one feature left open:
+
+    - (1,1): NE, NE from (0,2) (E, E from (0,0)): required, probability 1/2;
+    - an action that keeps it at (0,2) (stay, or S, W, SW, NW, SE off the grid): it
+      waits there with it (probability 1/2); from (0,0) the expert reaches the goal at
+      t = 2 and decides 3 more times there, uniformly among the moves that keep it at
+      the goal (E, NE and the open one, if it does: stay, NW, SE) and, at the last
+      decision, where nothing more is scored, among all safe moves (those and W, back
+      to (1,0)). So stay, NW, SE: 1/2 + 1/2 (1 - (2/3)^3) = 23/27; W: 1/2 + 1/2 · 1/3;
+      S, SW (into undemonstrated cells from the goal): 1/2. All required;
+    - any other (the cells (0,1) (1,2) (2,1) (2,2), N, collision): (0,2) has no safe
+      move, there is no hard-constrained model: infeasible, NaN, undetermined.
+    """
+    layout = GridLayout(size=3, starts=((0, 0),), goals=((2, 0),))
+    model, solver, reward = problem(layout, horizon=5)
+    demos = demos_of(model, one_expert("E E NE NE NE"))
+    p0 = torch.zeros(9, dtype=torch.float64)
+    p0[[layout.cell((0, 0)), layout.cell((0, 2))]] = 0.5
+    result = classify_features(solver=solver, reward=reward,
+                               cost_basis=SharedIndicatorCostBasis(model),
+                               demonstrations=demos, initial_distribution=p0)
+    assert names(result, result.demonstrated) == {
+        "cell(0,0)", "cell(1,0)", "cell(2,0)", "cell(0,2)", "action E", "action NE"}
+    waits = {f"action {a}" for a in ("stay", "S", "W", "SW", "NW", "SE")}
+    assert names(result, result.required) == {"cell(1,1)"} | waits
+    p = dict(zip(result.names, result.probability.tolist(), strict=True))
+    want = {"cell(1,1)": 1 / 2, "action stay": 23 / 27, "action NW": 23 / 27,
+            "action SE": 23 / 27, "action W": 2 / 3, "action S": 1 / 2, "action SW": 1 / 2}
+    assert {n: p[n] for n in want} == pytest.approx(want, abs=1e-12)
+    infeasible = {"cell(0,1)", "cell(1,2)", "cell(2,1)", "cell(2,2)", "action N", "collision"}
+    assert names(result, result.infeasible) == infeasible
+    assert names(result, result.undetermined) == infeasible
+    assert result.probability[result.infeasible].isnan().all()
 
 
 def test_p0_per_expert_is_the_product():

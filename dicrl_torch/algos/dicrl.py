@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -212,11 +213,19 @@ class DICRL:
         self.n_learners, self.local = N_L, local
         d, lr = learner_model.cost_dim, learner_model.reward_dim
         self.accrued = torch.stack([s.cost_accrual > 0 for s in self.stats])  # [n, d]
+        # Features P0 gives mass to: with budget 0 none can be a constraint. Every learner
+        # knows P0, so they are held at 0 from ω_c(0) on (and stay 0 through consensus).
+        self.pinned = learner_model.start_features().to(torch.bool)  # [d]
+        if bool(self.pinned.all()):
+            warnings.warn("Every cost feature is positive on the start states (P0), so with "
+                          "budget 0 none can be a constraint and ω_c stays 0; use a basis of "
+                          "indicators (e.g. cells) to learn constraints.", stacklevel=2)
 
         cw = torch.as_tensor(init_cost_weights, dtype=torch.float64)
         cw = cw.expand(N_L, d).clone() if cw.dim() == 0 else cw.clone()
         if cw.shape != (N_L, d) or not ((cw >= 0) & (cw <= 1)).all():  # NaN fails too
             raise ValueError(f"init_cost_weights must be a scalar or [{N_L}, {d}] in [0, 1].")
+        cw[:, self.pinned] = 0.0
         rw = torch.as_tensor(init_reward_weights, dtype=torch.float64).expand(lr).clone()
         if not torch.isfinite(rw).all():
             raise ValueError(f"init_reward_weights must be finite, got {init_reward_weights}; "
@@ -383,6 +392,7 @@ class DICRL:
         target = (st.cost_weights + self.n_learners * tracker / self.rho).clamp(0.0, 1.0)
         if self.prune_accrued:
             target = torch.where(self.accrued, 0.0, target)
+        target = torch.where(self.pinned, 0.0, target)
         half = st.cost_weights + self.steps.beta(n) * (target - st.cost_weights)
         self._check_finite("ω_c", half)
         st.cost_weights = self.comm.mix(half, W_bar, "cost_weights")

@@ -39,12 +39,21 @@ from some start state of P0 (``V_0 = -inf`` there), the hard-constrained model i
 undefined: ``j`` is reported ``undetermined`` with probability NaN and flagged in
 ``infeasible``.
 
+Two consequences of the finite-horizon model worth knowing when reading the classes:
+optimal experts choose uniformly among tied actions, so an undemonstrated action that,
+once open, ties with the best demonstrated ones at a state the experts reach (e.g. a
+move off the grid, which keeps an expert at its goal as ``stay`` does) takes its share
+of the ties and is required; and
+at the last decision (``t = T-1``) nothing more is scored, so the experts pick any move
+that is safe under ``U \\ {j}``: a feature one move away from where they stand then is
+accrued (and the true experts' demonstrations show such last moves too).
+
 **P0.** ``initial_distribution`` is a joint distribution (``[S1]*N``) or one per expert
 (``[N, S1]``, independent starts); by default the model's (a point mass on the start
 cells). Every demonstration must start where P0 has mass.
 
-**Cost.** One backward solve per classified feature plus the sparse forward pass
-(measured in docs/experiments.md; ``experiments/identifiability.py`` prints it).
+**Cost.** One backward solve per classified undemonstrated feature plus the sparse
+forward pass (``experiments/identifiability.py`` prints the time per candidate).
 """
 
 from __future__ import annotations

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from dicrl_torch.algos.icrl import LocalStatistics, log_likelihood, model_reward
+from dicrl_torch.envs.grid import decode_joint
 from dicrl_torch.features.bases import FeatureBasis
 from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
 
@@ -92,6 +93,12 @@ class LearnerModel(Protocol):
 
     def describe(self) -> str:
         """Shapes and settings a checkpoint of a trainer over this model must match."""
+        ...
+
+    def start_features(self) -> torch.Tensor:
+        """``[l_c]`` bool: the cost features P0 gives mass to (accrued at a start state
+        whatever the action). With budget 0 none of them can be a constraint: the trainer
+        keeps their ω_c at 0 (the learner knows P0; this is no ground truth)."""
         ...
 
 
@@ -163,6 +170,13 @@ class TabularLearnerModel:
         """The shared solver (every learner's)."""
         return self.solver
 
+    def start_features(self) -> torch.Tensor:
+        m = self.model
+        actions = decode_joint(torch.arange(m.n_actions ** m.n_experts), m.n_actions,
+                               m.n_experts)  # every joint action [A, N]
+        cells = torch.tensor(m.start_state, dtype=torch.int64).expand_as(actions)
+        return (self.fc.at(cells, actions, m.n_cells) > 0).all(0)
+
     def state_dict(self) -> dict:
         """Empty: the exact solver has no state."""
         return {}
@@ -227,6 +241,15 @@ class SACLearnerModel:
             raise ValueError(f"learner {learner} has no solver: this model holds "
                              f"{len(self.solvers)}; give one solver per local learner.")
         return self.solvers[learner]
+
+    def start_features(self) -> torch.Tensor:
+        """The cost features positive anywhere on the support of the arena's P0 (the
+        drones at rest within their start jitter boxes): the solver's features count
+        next states, so the demonstrations never accrue these."""
+        from dicrl_torch.envs.drones import start_support
+
+        phi = self.solvers[0].cost_basis(torch.as_tensor(start_support()))
+        return (phi > 0).any(0)
 
     def statistics(self, demos: DroneDemonstrations) -> LocalStatistics:
         """``μ̂_r``, the cost accrual and ``m`` of a learner's pairs, counted as the

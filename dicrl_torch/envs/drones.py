@@ -82,6 +82,20 @@ NOMINAL_STARTS: tuple[tuple[float, float], ...] = ((1.0, 1.0), (9.0, 1.0))
 """Per drone, the nominal start; ``reset`` adds uniform jitter of ``±START_JITTER``."""
 START_JITTER: float = 0.25
 
+def start_support(points_per_axis: int = 5) -> np.ndarray:
+    """Joint start states spanning the support of P0: every combination of the drones'
+    positions on a ``points_per_axis``² grid over their jitter boxes (corners included),
+    at rest. Enough to find every feature that P0 gives mass to for features constant on
+    cells (a cell the box touches holds a grid point); ``[P, N_DRONES, 4]``."""
+    offsets = np.linspace(-START_JITTER, START_JITTER, points_per_axis)
+    box = np.stack(np.meshgrid(offsets, offsets, indexing="ij"), -1).reshape(-1, 2)  # [k, 2]
+    per_drone = [np.asarray(start) + box for start in NOMINAL_STARTS]
+    grids = np.meshgrid(*[np.arange(len(box))] * N_DRONES, indexing="ij")
+    combos = np.stack([g.ravel() for g in grids], -1)  # [P, N_DRONES]
+    pos = np.stack([per_drone[i][combos[:, i]] for i in range(N_DRONES)], 1)
+    return np.concatenate([pos, np.zeros_like(pos)], -1)
+
+
 PROXIMITY_RADIUS: float = 0.5
 """Two active drones closer than this (metres) collide."""
 
