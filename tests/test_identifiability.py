@@ -79,9 +79,10 @@ def one_expert(actions: str) -> list[list[str]]:
 # ------------------------------------------------------------------ 1. a hidden wall cell
 def thick_wall():
     """4x4, one expert from (0,0) to (3,0); a wall two cells thick, (1,0) (2,0) (1,1)
-    (2,1), open below. The optimal path goes under it in 5 moves::
+    (2,1), open below. The optimal path goes under it in 5 moves; at the goal the expert
+    stays by any action that keeps it there (stay, or a move off the grid such as NW)::
 
-        S # # G        (0,0) S (0,1) SE (1,2) E (2,2) NE (3,1) N (3,0)
+        S # # G        (0,0) S (0,1) SE (1,2) E (2,2) NE (3,1) N (3,0), NW, stay, stay
         . # # .
         . . . .
         . . . .
