@@ -73,6 +73,27 @@ def test_tiny_run_with_baselines_has_the_paper_rows(tmp_path):
     for r in rows[1:3]:
         assert r.split()[1:3] == ["×", "×"] and r.rstrip().endswith("N/A")
     assert rows[0].split()[1:3] == ["×", "✓"]
+    # identifiability (docs/design.md §6): the true set's classes, and FNR_required of
+    # every learned row recomputed from them and the row's constraints
+    ident = res["identifiability"]
+    true = set(ident["demonstrated"]) | set(ident["required"]) | set(ident["undetermined"])
+    assert ident["n_features"] == len(true) == 13  # 11 cells, NE, NW (one expert)
+    assert ident["n_required"] >= 1
+    assert "FNR_req" in out.stdout and "true constraints: " in out.stdout
+    for name, m in res["methods"].items():
+        for row in m["learners"]:
+            if name.startswith("Experts"):
+                assert "FNR_required" not in row
+                continue
+            missed = set(ident["required"]) - set(row["constraints"])
+            assert row["FNR_required"] == len(missed) / ident["n_required"]
+            assert (row["n_required"], row["n_undetermined"]) == (
+                ident["n_required"], ident["n_undetermined"])
+            # a learned constraint the data accrue contradicts them (among the true ones:
+            # the demonstrated class)
+            contra = set(row["contradictions"])
+            assert contra <= set(row["constraints"])
+            assert contra & true == set(row["constraints"]) & set(ident["demonstrated"])
 
 
 @pytest.mark.slow  # ~12 min on 2 cores

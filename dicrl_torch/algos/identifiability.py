@@ -108,6 +108,8 @@ class Identifiability:
         min_probability: the threshold of ``required``.
         temperature: the experts' temperature (0: optimal, uniform ties).
         seconds: wall time of the classification; ``n_solves`` its backward solves.
+        accrued: ``[l]`` bool, every feature a demonstration or P0 accrues, in scope or
+            not (a learned constraint among them contradicts the data).
     """
 
     names: list[str]
@@ -121,6 +123,7 @@ class Identifiability:
     temperature: float = 0.0
     seconds: float = 0.0
     n_solves: int = 0
+    accrued: torch.Tensor | None = None
 
     @property
     def n_features(self) -> int:
@@ -461,7 +464,8 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
         names=names, scope=scope, demonstrated=demonstrated & scope, required=required,
         undetermined=unseen & scope & ~required, probability=probability,
         infeasible=infeasible, min_probability=float(min_probability),
-        temperature=float(temperature), seconds=seconds, n_solves=len(candidates))
+        temperature=float(temperature), seconds=seconds, n_solves=len(candidates),
+        accrued=demonstrated)
 
 
 # ------------------------------------------------------------------------ checks

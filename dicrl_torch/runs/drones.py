@@ -239,6 +239,10 @@ class DroneTask:
                             "log_likelihood": ll, "FPR": rates["FPR"], "FNR": rates["FNR"]})
         return row, history
 
+    def annotate(self, methods: dict) -> dict | None:
+        """No identifiability classes for the arena: they need a SAC solve per feature."""
+        return None
+
     # ------------------------------------------------------------------ figures
     def figures(self, *, methods: dict, histories: dict, experiment: str,
                 eval_every: int) -> dict[str, np.ndarray]:

@@ -19,6 +19,11 @@ import torch
 
 from dicrl_torch.algos.dicrl import DICRL
 from dicrl_torch.algos.greedy import GreedyConstraintInference, GreedyResult
+from dicrl_torch.algos.identifiability import (
+    Identifiability,
+    classify_features,
+    fnr_required,
+)
 from dicrl_torch.algos.models import TabularLearnerModel
 from dicrl_torch.demos import load_demonstrations, partition_demonstrations, save_demonstrations
 from dicrl_torch.demos.storage import Demonstrations
@@ -168,7 +173,7 @@ class GridTask:
         baseline_epsilon, baseline_max_constraints: the greedy's stopping rule.
     """
 
-    columns = ("CR", "FPR", "FNR", "CVR", "RFD")
+    columns = ("CR", "FPR", "FNR", "FNR_required", "CVR", "RFD")
     multi_reference = True  # Experts (ground truth) and (nominal)
 
     def __init__(self, *, layout: GridLayout, model: TabularGridModel, solver, reward_basis,
@@ -187,6 +192,8 @@ class GridTask:
         self.reward_basis, self.cost_basis = reward_basis, cost_basis
         self.split = [int(m) for m in split]
         self.threshold, self.prune_min_gain = float(threshold), prune_min_gain
+        self.expert_temperature = float(expert_temperature)
+        self._identifiability: Identifiability | None = None
         self.baseline_names = list(baselines)
         self.baseline_epsilon = baseline_epsilon
         self.baseline_max_constraints = baseline_max_constraints
@@ -333,6 +340,43 @@ class GridTask:
         row["constraints"] = constraint_names(self.cost_basis.names,
                                               result.constraint_mask.double(), 0.5)
         return row, history
+
+    # ------------------------------------------------------------------ identifiability
+    def identifiability(self) -> Identifiability | None:
+        """The true constraints classified as demonstrated / required / undetermined from
+        every learner's demonstrations (docs/design.md §6; evaluation only: it uses the
+        true reward and the experts' model). None without a ground truth or without the
+        pooled demonstrations (a learner process on its own file). Computed once: one
+        solve per undemonstrated true constraint."""
+        true = self.evaluation.true_constraints
+        if self._identifiability is None and true is not None and self.demos is not None:
+            reward = self.reward_basis().weighted(self.evaluation.true_reward_weights)
+            self._identifiability = classify_features(
+                solver=self.solver, reward=reward, cost_basis=self.cost_basis,
+                demonstrations=self.demos, temperature=self.expert_temperature,
+                only=torch.as_tensor(true))
+        return self._identifiability
+
+    def annotate(self, methods: dict) -> dict | None:
+        """Adds to every learned row ``FNR_required``, the true set's class counts and
+        ``contradictions`` (learned constraints a demonstration or P0 accrues); returns
+        ``results.json``'s ``identifiability`` record (None where it does not apply)."""
+        ident = self.identifiability()
+        if ident is None:
+            return None
+        true = torch.as_tensor(self.evaluation.true_constraints)
+        counts = {"n_demonstrated": ident.n_demonstrated, "n_required": ident.n_required,
+                  "n_undetermined": ident.n_undetermined}
+        names = list(self.cost_basis.names)
+        for m in methods.values():
+            for row in m["learners"]:
+                if "constraints" not in row:  # reference rows learn nothing
+                    continue
+                learned = torch.zeros(len(names), dtype=torch.bool)
+                learned[[names.index(n) for n in row["constraints"]]] = True
+                row.update(FNR_required=fnr_required(learned, true, ident), **counts,
+                           contradictions=ident.names_of(learned & ident.accrued))
+        return ident.as_dict()
 
     # ------------------------------------------------------------------ figures
     def evaluation_settings(self) -> dict[str, Any]:

@@ -53,7 +53,8 @@ def print_timings(results: dict, resumed: bool) -> None:
 TABLE1_COLUMNS = ("CR", "FPR", "FNR", "CVR", "RFD")
 TABLE2_COLUMNS = ("FPR", "FNR", "CVR", "SR")
 _FORMATS = {"FPR": (7, ".2f"), "FNR": (7, ".2f"), "CVR": (8, ".3f"), "RFD": (8, ".3f"),
-            "SR": (7, ".2f")}
+            "SR": (7, ".2f"), "FNR_required": (8, ".2f")}
+_HEADERS = {"FNR_required": "FNR_req"}
 
 
 def print_table(methods: dict, columns: Sequence[str] = TABLE1_COLUMNS) -> None:
@@ -62,7 +63,7 @@ def print_table(methods: dict, columns: Sequence[str] = TABLE1_COLUMNS) -> None:
     fmt = lambda x, f: "N/A" if x is None else format(x, f)  # noqa: E731
     head = f"{'':26s}{'D':>3s}{'NATR':>6s}"
     for c in columns:
-        head += f"{'CR':>20s}" if c == "CR" else f"{c:>{_FORMATS[c][0]}s}"
+        head += f"{'CR':>20s}" if c == "CR" else f"{_HEADERS.get(c, c):>{_FORMATS[c][0]}s}"
     print(head)
     for name, m in methods.items():
         for j, r in enumerate(m["learners"]):

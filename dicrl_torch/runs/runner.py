@@ -72,6 +72,10 @@ class Task(Protocol):
 
     def reference_rows(self) -> dict[str, dict]: ...
 
+    def annotate(self, methods: dict) -> dict | None:
+        """Adds task-level metrics to the learned rows (the grid: FNR_required and the
+        identifiability counts); returns ``results.json``'s ``identifiability`` record."""
+
     def make_baselines(self, methods: dict[str, dict], progress: bool = True) -> dict:
         """The greedy baselines by row name, built but not run; ``methods`` holds the rows
         of the methods trained so far (a baseline may build on them, e.g. the drones'
@@ -154,6 +158,13 @@ def make_trainer(task: Task, spec: TrainerSpec, shards: Sequence, communicator,
 def file_stem(name: str) -> str:
     """A method's name as a file or TensorBoard run name: ``M(C)E-greedy`` -> ``MCE-greedy``."""
     return re.sub(r"[^\w.-]", "", name)
+
+
+def run_name(method: str, learner: int) -> str:
+    """A method's TensorBoard run: ``learner<v>`` for D-ICRL, ``c_icrl``, ``me_greedy``..."""
+    if method == "D-ICRL":
+        return f"learner{learner}"
+    return file_stem(method).lower().replace("-", "_")
 
 
 def log_row(task: Task, logger, run: str, label: str, row: dict, step: int,
@@ -256,7 +267,7 @@ def run_baselines(task: Task, trained_rows: dict[str, dict], *, logger, out: Pat
     methods, histories, seconds = {}, {}, {}
     for name, greedy in task.make_baselines(trained_rows).items():
         res = run_greedy(name, greedy, ckpt, stop)
-        run = file_stem(name).lower().replace("-", "_")
+        run = run_name(name, 0)
         row, history = task.baseline_row(name, res)
         for h in history:
             for key, tag in (("FPR", "eval/FPR"), ("FNR", "eval/FNR"),
@@ -307,12 +318,19 @@ def finish(task: Task, settings: RunSettings, spec: TrainerSpec, *, out: Path,
         task, dict(methods), logger=logger, out=out, ckpt=ckpt, stop=stop)
     methods.update(baseline_rows)  # before the experts: the paper's row order
     histories.update(baseline_histories)
+    identifiability = task.annotate(methods)
     for name, row in task.reference_rows().items():
         methods[name] = {"learners": [row]}
     results = results_record(
         experiment=settings.experiment, config=settings.config, t_start=t_start,
         methods=methods, disagreement=None if d_icrl is None else d_icrl["disagreement"],
         histories=histories, baseline_seconds=baseline_seconds)
+    results["identifiability"] = identifiability
+    for name, m in methods.items():  # the rows' final values the evaluation did not log
+        for v, row in enumerate(m["learners"]):
+            if row.get("FNR_required") is not None:
+                logger.scalar(run_name(name, v), "eval/FNR_required", row["FNR_required"],
+                              settings.outer_iterations)
     write_json(out / "results.json", results)
     # After results.json: a figure that fails to draw loses no result.
     images = task.figures(methods=methods, histories=results["history"],
@@ -324,6 +342,11 @@ def finish(task: Task, settings: RunSettings, spec: TrainerSpec, *, out: Path,
     logger.close()
     print()
     print_table(methods, task.columns)
+    if identifiability is not None:
+        i = identifiability
+        print(f"true constraints: {i['n_demonstrated']} demonstrated, {i['n_required']} "
+              f"required, {i['n_undetermined']} undetermined by the demonstrations "
+              f"(undetermined: {', '.join(i['undetermined']) or 'none'})")
     print_timings(results, resumed=settings.resume)
     print(f"results, TensorBoard runs (tb/) and figures in {out.resolve()}")
     print("figures:\n" + "\n".join(f"  {path.resolve()}" for path in paths))
