@@ -205,6 +205,43 @@ def demonstrated_features(features: FactoredFeatures, demos: Demonstrations,
     return seen | ((phi_T > _POSITIVE).any(0) & is_state_feature(features))
 
 
+def cost_features_of(cost_basis, model: TabularGridModel
+                     ) -> tuple[FactoredFeatures, list[str]]:
+    """A cost basis (or its features) checked against the solver's ``model``: its
+    :class:`FactoredFeatures` ``[N, S1, A1, l]`` (+ joint part) and feature names.
+
+    Raises:
+        TypeError, ValueError: naming the mismatch and the fix.
+    """
+    if isinstance(cost_basis, FeatureBasis):
+        other = cost_basis.model
+        if other is not model and (other.layout != model.layout
+                                   or other.n_experts != model.n_experts):
+            raise ValueError(
+                f"The cost basis {type(cost_basis).__name__} was built on another model "
+                f"(layout {other.layout.name!r}, {other.layout.size}x{other.layout.size}, "
+                f"{other.n_experts} experts) than the solver's (layout "
+                f"{model.layout.name!r}, {model.layout.size}x{model.layout.size}, "
+                f"{model.n_experts} experts); build it on solver.model, e.g. "
+                f"SharedIndicatorCostBasis(solver.model).")
+        features, names = cost_basis(), list(cost_basis.names)
+    elif isinstance(cost_basis, FactoredFeatures):
+        features, names = cost_basis, [f"feature {j}" for j in range(cost_basis.dim)]
+    else:
+        raise TypeError(f"cost_basis must be a FeatureBasis or FactoredFeatures, got "
+                        f"{type(cost_basis).__name__}.")
+    want = (model.n_experts, model.n_cells, model.n_actions)
+    if tuple(features.local.shape[:3]) != want:
+        raise ValueError(f"The cost features are for {tuple(features.local.shape[:3])} "
+                         f"(experts, cells, actions), the solver's model has {want}; build "
+                         f"the basis on solver.model.")
+    if features.joint is not None and features.joint.shape[0] != model.n_states:
+        raise ValueError(f"The cost features' joint part covers {features.joint.shape[0]} "
+                         f"joint states, the solver's model has {model.n_states}; build the "
+                         f"basis on solver.model.")
+    return features, names
+
+
 # ----------------------------------------------------------------- the greedy
 @dataclass(frozen=True)
 class GreedyStep:
@@ -481,18 +518,8 @@ class GreedyConstraintInference(GreedyLoop):
         if not isinstance(reward, FactoredReward):
             raise TypeError(f"reward must be a FactoredReward (e.g. "
                             f"reward_basis().weighted(w_true)), got {type(reward).__name__}.")
-        if isinstance(cost_basis, FeatureBasis):
-            features, names = cost_basis(), list(cost_basis.names)
-        elif isinstance(cost_basis, FactoredFeatures):
-            features, names = cost_basis, [f"feature {j}" for j in range(cost_basis.dim)]
-        else:
-            raise TypeError(f"cost_basis must be a FeatureBasis or FactoredFeatures, got "
-                            f"{type(cost_basis).__name__}.")
         m = solver.model
-        want = (m.n_experts, m.n_cells, m.n_actions)
-        if tuple(features.local.shape[:3]) != want:
-            raise ValueError(f"cost features are for {tuple(features.local.shape[:3])} "
-                             f"(experts, cells, actions); the solver's model has {want}.")
+        features, names = cost_features_of(cost_basis, m)
         if features.local.min() < 0 or (features.joint is not None and features.joint.min() < 0):
             raise ValueError("cost features must be non-negative: a constraint masks the pairs "
                              "where its feature is positive. Use an indicator basis.")

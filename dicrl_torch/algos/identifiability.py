@@ -67,7 +67,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from dicrl_torch.algos.greedy import constraint_masks, demonstrated_features, is_state_feature
+from dicrl_torch.algos.greedy import (
+    constraint_masks,
+    cost_features_of,
+    demonstrated_features,
+    is_state_feature,
+)
 from dicrl_torch.demos.storage import Demonstrations
 from dicrl_torch.envs.grid import TabularGridModel, decode_joint, encode_joint
 from dicrl_torch.features.bases import FactoredFeatures, FactoredReward, FeatureBasis
@@ -470,32 +475,7 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
 
 # ------------------------------------------------------------------------ checks
 def _features_of(cost_basis, model: TabularGridModel) -> tuple[FactoredFeatures, list[str]]:
-    if isinstance(cost_basis, FeatureBasis):
-        other = cost_basis.model
-        if other is not model and (other.layout != model.layout
-                                   or other.n_experts != model.n_experts):
-            raise ValueError(
-                f"The cost basis {type(cost_basis).__name__} was built on another model "
-                f"(layout {other.layout.name!r}, {other.layout.size}x{other.layout.size}, "
-                f"{other.n_experts} experts) than the solver's (layout "
-                f"{model.layout.name!r}, {model.layout.size}x{model.layout.size}, "
-                f"{model.n_experts} experts); build it on solver.model, e.g. "
-                f"SharedIndicatorCostBasis(solver.model).")
-        features, names = cost_basis(), list(cost_basis.names)
-    elif isinstance(cost_basis, FactoredFeatures):
-        features, names = cost_basis, [f"feature {j}" for j in range(cost_basis.dim)]
-    else:
-        raise TypeError(f"cost_basis must be a FeatureBasis or FactoredFeatures, got "
-                        f"{type(cost_basis).__name__}.")
-    want = (model.n_experts, model.n_cells, model.n_actions)
-    if tuple(features.local.shape[:3]) != want:
-        raise ValueError(f"The cost features are for {tuple(features.local.shape[:3])} "
-                         f"(experts, cells, actions), the solver's model has {want}; build "
-                         f"the basis on solver.model.")
-    if features.joint is not None and features.joint.shape[0] != model.n_states:
-        raise ValueError(f"The cost features' joint part covers {features.joint.shape[0]} "
-                         f"joint states, the solver's model has {model.n_states}; build the "
-                         f"basis on solver.model.")
+    features, names = cost_features_of(cost_basis, model)
     if features.local.min() < 0 or (features.joint is not None and features.joint.min() < 0):
         raise ValueError("The cost features must be non-negative: a feature is accrued "
                          "where it is positive. Use an indicator basis (shared, per_expert, "
