@@ -325,6 +325,8 @@ def finish(task: Task, settings: RunSettings, spec: TrainerSpec, *, out: Path,
         experiment=settings.experiment, config=settings.config, t_start=t_start,
         methods=methods, disagreement=None if d_icrl is None else d_icrl["disagreement"],
         histories=histories, baseline_seconds=baseline_seconds)
+    if identifiability is not None:  # its time beside the other timings, not in the record
+        results["identifiability_s"] = identifiability.pop("seconds")
     results["identifiability"] = identifiability
     for name, m in methods.items():  # the rows' final values the evaluation did not log
         for v, row in enumerate(m["learners"]):
