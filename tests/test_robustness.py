@@ -313,10 +313,10 @@ def test_a_run_stopped_after_evaluating_resumes_without_evaluating_again(tmp_pat
     saved = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     expected = comparable(reference)["methods"]["D-ICRL"]["learners"]
     # the rows as evaluated; the run's end adds the identifiability fields to every row
-    added = ("FNR_required", "n_demonstrated", "n_required", "n_undetermined",
-             "contradictions")
+    from dicrl_torch.runs.grid import ANNOTATIONS
+
     assert saved["D-ICRL:evaluated"]["rows"] == [
-        {k: v for k, v in row.items() if k not in added} for row in expected]
+        {k: v for k, v in row.items() if k not in ANNOTATIONS} for row in expected]
     resumed = run_train(tmp_path, "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "D-ICRL: rows evaluated after outer iteration 3 taken from" in resumed.stdout

@@ -47,6 +47,9 @@ from dicrl_torch.metrics import (
 )
 from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 
+# What GridTask.annotate adds to every learned row (null where it cannot be computed).
+ANNOTATIONS = ("FNR_required", "n_demonstrated", "n_required", "n_undetermined",
+               "contradictions")
 # The baselines' table rows (names as in the paper) and the greedy's demonstrator model.
 GRID_BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
 
@@ -362,21 +365,23 @@ class GridTask:
         ``contradictions`` (learned constraints a demonstration or P0 accrues); returns
         ``results.json``'s ``identifiability`` record (None where it does not apply)."""
         ident = self.identifiability()
-        if ident is None:
-            return None
-        true = torch.as_tensor(self.evaluation.true_constraints)
-        counts = {"n_demonstrated": ident.n_demonstrated, "n_required": ident.n_required,
-                  "n_undetermined": ident.n_undetermined}
         names = list(self.cost_basis.names)
         for m in methods.values():
             for row in m["learners"]:
                 if "constraints" not in row:  # reference rows learn nothing
                     continue
+                if ident is None:  # no truth, or no process holds every demonstration
+                    row.update(dict.fromkeys(ANNOTATIONS))
+                    continue
                 learned = torch.zeros(len(names), dtype=torch.bool)
                 learned[[names.index(n) for n in row["constraints"]]] = True
-                row.update(FNR_required=fnr_required(learned, true, ident), **counts,
+                row.update(FNR_required=fnr_required(
+                               learned, torch.as_tensor(self.evaluation.true_constraints),
+                               ident),
+                           n_demonstrated=ident.n_demonstrated, n_required=ident.n_required,
+                           n_undetermined=ident.n_undetermined,
                            contradictions=ident.names_of(learned & ident.accrued))
-        return ident.as_dict()
+        return None if ident is None else ident.as_dict()
 
     # ------------------------------------------------------------------ figures
     def evaluation_settings(self) -> dict[str, Any]:
