@@ -219,7 +219,8 @@ def test_table2_entry_point_end_to_end(tmp_path):
     assert (tmp_path / "constraints_D-ICRL_1.png").exists()  # Fig. 3c, per learner
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # ~4.5 min alone; beside another job it can pass the default 600 s limit
+@pytest.mark.timeout(1500)
 def test_table2_quick_runs_at_full_scale(tmp_path):
     """experiment=table2_quick as shipped (~3 min): every row, figure and history entry.
     Its numbers are far from the paper's (docs/drones.md sets experiment=table2 beside
