@@ -156,7 +156,8 @@ def rollout_true_cmg(*, policy: Policy, model: TabularGridModel, layout: GridLay
 
     Args:
         policy: ``(t, cells [B, N]) -> [B, A1**N]`` probabilities.
-        model: the tabular model (dynamics, horizon, start).
+        model: the tabular model (dynamics, horizon, P0: each episode's start is drawn
+            from it with ``rng`` before the first step).
         layout: the true constraints.
         reward_table: ``[N, S1]`` true reward of each expert in each cell.
         n_episodes: number of episodes ``B``.
@@ -166,7 +167,9 @@ def rollout_true_cmg(*, policy: Policy, model: TabularGridModel, layout: GridLay
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}.")
     N, A1, T = model.n_experts, model.n_actions, model.horizon
     B = n_episodes
-    cells = torch.tensor(model.start_state, dtype=torch.int64).expand(B, N).clone()
+    # starts drawn from P0 with rng: nothing is drawn with fixed starts, so their stream
+    # (and every result) is the one of a point-mass P0
+    cells = model.sample_starts(B, rng)
     active = torch.ones(B, N, dtype=torch.bool)
     violated = torch.zeros(B, N, dtype=torch.bool)
     returns = torch.zeros(B, dtype=torch.float64)

@@ -5,6 +5,7 @@
     .venv/bin/python experiments/identifiability.py --all           # every feature of U
     .venv/bin/python experiments/identifiability.py --experts 3 --time-one
     .venv/bin/python experiments/identifiability.py --basis regions --no-likelihood
+    .venv/bin/python experiments/identifiability.py --varied --no-likelihood   # varied starts
 
 **Classes** (docs/design.md §6, :mod:`dicrl_torch.algos.identifiability`). The true
 constraints of the cost basis (``--all``: every feature) are classified as
@@ -13,6 +14,10 @@ the experts, with every other undemonstrated feature forbidden, still accrue the
 probability >= 0.01 per trajectory) or *undetermined*, with the time per candidate (one
 backward solve and an exact forward pass). ``--time-one`` classifies a single true
 constraint only, to time one candidate where a full classification is long (3 experts).
+``--varied`` samples the demonstrations under the varied-start protocol (docs/design.md
+§3: ``GridLayout.scobee_varied``, each expert's start uniform over the free cells of its
+rectangle of ``SCOBEE_START_REGIONS``; ``--start-regions "x0,y0,x1,y1;..."`` sets them) and
+classifies with that P0.
 
 **Likelihoods.** Compares the demonstrations' mean log-likelihood (nats per trajectory,
 the D-ICRL objective's γ-discounted convention) under the *true* reward, scaled by ``s``
@@ -69,6 +74,7 @@ def classify(args, solver, reward, cost_basis, demos) -> None:
         only[int(torch.nonzero(true)[0])] = True
     result = classify_features(solver=solver, reward=reward, cost_basis=cost_basis,
                                demonstrations=demos, temperature=args.expert_temperature,
+                               initial_distribution=solver.model.initial_distribution(),
                                only=only, progress=args.progress)
     per = result.seconds_per_candidate
     print(f"\nidentifiability ({args.basis} basis, {args.demonstrations} demonstrations, "
@@ -131,11 +137,22 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--dtype", default="float64", choices=("float32", "float64"))
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument("--varied", action="store_true",
+                        help="varied starts (SCOBEE_START_REGIONS for the number of experts)")
+    parser.add_argument("--start-regions", default=None,
+                        help="varied starts in these rectangles: 'x0,y0,x1,y1;...', one per "
+                             "expert")
     args = parser.parse_args()
     if "DICRL_THREADS" in os.environ:
         torch.set_num_threads(int(os.environ["DICRL_THREADS"]))
 
-    layout = GridLayout.scobee(n_experts=args.experts)
+    if args.start_regions is not None:
+        regions = [[int(v) for v in r.split(",")] for r in args.start_regions.split(";")]
+        layout = GridLayout.scobee_varied(n_experts=args.experts, start_regions=regions)
+    elif args.varied:
+        layout = GridLayout.scobee_varied(n_experts=args.experts)
+    else:
+        layout = GridLayout.scobee(n_experts=args.experts)
     model = TabularGridModel(layout=layout, horizon=args.horizon, gamma=args.gamma)
     solver = FactoredSoftBellman(model=model, dtype=args.dtype, device=args.device)
     reward_basis, cost_basis = GoalClosenessRewardBasis(model), BASES[args.basis](model)
@@ -145,7 +162,9 @@ def main() -> None:
                               reward_weights=w_true, temperature=args.expert_temperature)
     demos = sample_trajectories(experts, args.demonstrations,
                                 np.random.default_rng(args.seed))
-    print(f"{args.experts} expert(s), T={args.horizon}, γ={args.gamma}, "
+    starts = ("fixed starts" if layout.start_sets is None else "varied starts over " +
+              ", ".join(f"{len(s)}" for s in layout.start_sets) + " cells")
+    print(f"{args.experts} expert(s), {starts}, T={args.horizon}, γ={args.gamma}, "
           f"{args.demonstrations} demonstrations (seed {args.seed}); experts solved and "
           f"sampled in {time.perf_counter() - t0:.1f} s")
     classify(args, solver, reward_basis().weighted(w_true), cost_basis, demos)

@@ -16,7 +16,8 @@ PAPER_ORDER = ["D-ICRL", "C-ICRL", "ME-greedy", "MCE-greedy", "Experts (ground t
                "Experts (nominal)"]
 
 
-@pytest.mark.parametrize("experiment,n_experts", [("table1", 3), ("table1_small", 2)])
+@pytest.mark.parametrize("experiment,n_experts", [("table1", 3), ("table1_small", 2),
+                                                  ("table1_varied", 3)])
 def test_table1_experiments_compose(experiment, n_experts):
     cfg = compose_train(f"experiment={experiment}")
     assert cfg.name == experiment

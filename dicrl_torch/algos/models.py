@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from dicrl_torch.algos.icrl import LocalStatistics, log_likelihood, model_reward
-from dicrl_torch.envs.grid import decode_joint
+from dicrl_torch.envs.grid import encode_joint
 from dicrl_torch.features.bases import FeatureBasis
 from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
 
@@ -171,11 +171,22 @@ class TabularLearnerModel:
         return self.solver
 
     def start_features(self) -> torch.Tensor:
-        m = self.model
-        actions = decode_joint(torch.arange(m.n_actions ** m.n_experts), m.n_actions,
-                               m.n_experts)  # every joint action [A, N]
-        cells = torch.tensor(m.start_state, dtype=torch.int64).expand_as(actions)
-        return (self.fc.at(cells, actions, m.n_cells) > 0).all(0)
+        """``[l_c]`` bool: the cost features positive at some start state ``s`` with
+        ``P0(s) > 0`` whatever the joint action (``min_a φ_j(s, a) > 0``): accrued with
+        positive probability by any policy, so with budget 0 none is a constraint.
+
+        ``φ(s, a) = Σ_i local[i, s_i, a_i] + joint[s]`` with each expert's action free, so
+        ``min_a φ_j(s, a) = Σ_i min_{a_i} local[i, s_i, a_i, j] + joint[s, j]`` exactly:
+        ``[K, l_c]`` over P0's K support states, never ``K × A1^N`` pairs (3 experts with
+        varied starts have K in the ten thousands and 729 joint actions)."""
+        m, fc = self.model, self.fc
+        support = m.start_support()  # [K, N]
+        lowest = fc.local.amin(dim=2)  # [N, S1, l]: each expert's least over its actions
+        phi = sum(lowest[i, support[:, i]] for i in range(m.n_experts))  # [K, l]
+        if fc.joint is not None:
+            flat = encode_joint(support, m.n_cells)
+            phi = phi.index_add(1, fc.joint_columns, fc.joint[flat].to(phi.dtype))
+        return (phi > 0).any(0)
 
     def state_dict(self) -> dict:
         """Empty: the exact solver has no state."""

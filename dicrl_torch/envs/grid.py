@@ -10,7 +10,7 @@ so a joint value tensor has shape ``[S1] * N`` (``S1 = size**2``).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -45,6 +45,18 @@ SCOBEE_REGIONS: tuple[tuple[str, tuple[tuple[int, int], ...]], ...] = (
 SCOBEE_STARTS: tuple[tuple[int, int], ...] = ((0, 8), (8, 0), (0, 3))
 SCOBEE_GOALS: tuple[tuple[int, int], ...] = ((8, 8), (0, 0), (8, 3))
 SCOBEE_FORBIDDEN_ACTIONS: tuple[str, ...] = ("NE", "NW")
+# The varied-start protocol's rectangles (x0, y0, x1, y1), corners included, one per expert,
+# by number of experts (docs/design.md §3). Each expert starts uniformly in the free cells
+# of its rectangle: with 2 experts, expert 1 anywhere left of the wall and expert 2 anywhere
+# right of it; with 3, expert 1 keeps the bottom-left block and expert 3 the top-left one
+# (the sets must be disjoint). Measured (experiments/identifiability.py --varied: 100
+# demonstrations of optimal experts, seed 0, shared basis): all 14 true constraints are
+# required, with 2 experts and with 3, where fixed starts leave 8 and 4 undetermined.
+SCOBEE_START_REGIONS: dict[int, tuple[tuple[int, int, int, int], ...]] = {
+    1: ((0, 0, 3, 8),),
+    2: ((0, 0, 3, 8), (5, 0, 8, 8)),
+    3: ((0, 5, 3, 8), (5, 0, 8, 8), (0, 0, 3, 4)),
+}
 
 
 @dataclass(frozen=True)
@@ -61,6 +73,13 @@ class GridLayout:
         regions: named groups of cells, ``((name, ((x, y), ...)), ...)``, such as
             Scobee's wall colours. Not constraints in themselves: they are what a
             region cost basis may give one feature each.
+        start_sets: None (fixed starts: P0 is a point mass on ``starts``), or one tuple
+            of ``(x, y)`` cells per expert: the varied-start protocol of docs/design.md
+            §3, where P0 is the product of independent uniform distributions, expert
+            ``i`` starting uniformly in ``start_sets[i]``. Each expert's ``starts`` entry
+            must lie in its set: it stays the *nominal* start (drawn in figures). The
+            sets must be disjoint (two experts in one cell is a collision) and avoid
+            obstacles. :meth:`with_start_regions` builds them from rectangles.
     """
 
     size: int
@@ -70,6 +89,7 @@ class GridLayout:
     forbidden_actions: tuple[str, ...] = ()
     collision_constraint: bool = True
     regions: tuple[tuple[str, tuple[tuple[int, int], ...]], ...] = ()
+    start_sets: tuple[tuple[tuple[int, int], ...], ...] | None = None
     name: str = field(default="custom", compare=False)
 
     def __post_init__(self) -> None:
@@ -94,18 +114,71 @@ class GridLayout:
             if bad:
                 raise ValueError(f"{what} {sorted(bad)} lie on obstacles; move them.")
         check_regions(self.regions, self.size)
+        if self.start_sets is not None:
+            # normalised to tuples of (int, int) pairs: a config passes lists
+            object.__setattr__(self, "start_sets", self._checked_start_sets(self.start_sets))
         unknown = set(self.forbidden_actions) - set(ACTION_NAMES)
         if unknown:
             raise ValueError(
                 f"Unknown forbidden action(s) {sorted(unknown)}; choose from {ACTION_NAMES}."
             )
 
+    def _checked_start_sets(self, sets) -> tuple[tuple[tuple[int, int], ...], ...]:
+        """``sets`` (one collection of ``(x, y)`` cells per expert) as tuples, checked.
+
+        Raises:
+            ValueError: naming the expert, the cells at fault and the fix.
+        """
+        try:
+            sets = [[(int(x), int(y)) for x, y in cells] for cells in sets]
+        except (TypeError, ValueError):
+            raise ValueError(f"start_sets must hold one list of (x, y) cells per expert, got "
+                             f"{sets!r}; e.g. [[[0, 8], [1, 8]], [[8, 0]]].") from None
+        if len(sets) != self.n_experts:
+            raise ValueError(f"start_sets gives {len(sets)} start set(s) for "
+                             f"{self.n_experts} expert(s); give one per expert.")
+        obstacles = set(self.obstacles)
+        owner: dict[tuple[int, int], int] = {}
+        for i, cells in enumerate(sets):
+            who = f"expert {i + 1}'s start set"
+            if not cells:
+                raise ValueError(f"{who} is empty; give it at least its start "
+                                 f"{self.starts[i]}.")
+            off = [c for c in cells if not (0 <= c[0] < self.size and 0 <= c[1] < self.size)]
+            if off:
+                raise ValueError(f"{who}: cells {off} lie outside the {self.size}x{self.size} "
+                                 f"grid; remove them.")
+            blocked = sorted(set(cells) & obstacles)
+            if blocked:
+                raise ValueError(f"{who}: cells {blocked} are obstacles (a true constraint: "
+                                 f"an expert cannot start there); remove them.")
+            for c in cells:
+                if owner.get(c, i) != i:
+                    raise ValueError(
+                        f"cell {c} is in the start sets of experts {owner[c] + 1} and "
+                        f"{i + 1}; two experts in one cell is a collision (a true "
+                        f"constraint), so the sets must be disjoint: remove it from one.")
+                owner[c] = i
+            if tuple(self.starts[i]) not in cells:
+                raise ValueError(f"expert {i + 1}'s start {tuple(self.starts[i])} is not in its "
+                                 f"start set {sorted(set(cells))}; add it (it is the nominal "
+                                 f"start, drawn in figures) or move the start into the set.")
+        # sorted and without repeats: P0 is uniform over the set, not over a list
+        return tuple(tuple(sorted(set(cells), key=self.cell)) for cells in sets)
+
     # ---- constructors -------------------------------------------------------------
     @classmethod
-    def scobee(cls, n_experts: int = 3) -> GridLayout:
-        """The paper's 9x9 layout with the first ``n_experts`` experts of docs/design.md §3."""
+    def scobee(cls, n_experts: int = 3, start_regions=None) -> GridLayout:
+        """The paper's 9x9 layout with the first ``n_experts`` experts of docs/design.md §3.
+
+        Args:
+            start_regions: None (fixed starts, the paper's protocol) or rectangles
+                ``(x0, y0, x1, y1)``, one per expert in table order (extra ones beyond
+                ``n_experts`` are unused): each expert starts uniformly in the free cells
+                of its rectangle (see :meth:`with_start_regions`).
+        """
         _check_n_experts(n_experts)
-        return cls(
+        layout = cls(
             size=9,
             starts=SCOBEE_STARTS[:n_experts],
             goals=SCOBEE_GOALS[:n_experts],
@@ -114,18 +187,73 @@ class GridLayout:
             regions=SCOBEE_REGIONS,
             name=f"scobee{n_experts}",
         )
+        return layout if start_regions is None else layout.with_start_regions(start_regions)
 
     @classmethod
-    def open_grid(cls, size: int, n_experts: int) -> GridLayout:
+    def scobee_varied(cls, n_experts: int = 3, start_regions=None) -> GridLayout:
+        """The paper's layout under the varied-start protocol (docs/design.md §3): expert
+        ``i`` starts uniformly in the free cells of ``start_regions[i]`` (rectangles
+        ``(x0, y0, x1, y1)``, see :meth:`with_start_regions`); None takes
+        :data:`SCOBEE_START_REGIONS` for ``n_experts``. Its ``starts`` stay Scobee's (the
+        nominal starts, drawn in figures)."""
+        _check_n_experts(n_experts)
+        regions = SCOBEE_START_REGIONS[n_experts] if start_regions is None else start_regions
+        return replace(cls.scobee(n_experts, start_regions=regions),
+                       name=f"scobee{n_experts}_varied")
+
+    @classmethod
+    def open_grid(cls, size: int, n_experts: int, start_regions=None) -> GridLayout:
         """A nominal ``size x size`` grid without obstacles, for scaling studies and
-        tiny brute-force tests. Experts start in corners and aim for the opposite one."""
+        tiny brute-force tests. Experts start in corners and aim for the opposite one;
+        ``start_regions`` as in :meth:`scobee`."""
         _check_n_experts(n_experts)
         g = size - 1
         starts = ((0, g), (g, 0), (0, 0))[:n_experts]
         goals = ((g, g), (0, 0), (g, g))[:n_experts]
         if n_experts == 3:  # expert 3 goes top-left -> bottom-left so goals stay distinct
             goals = ((g, g), (0, 0), (0, g))
-        return cls(size=size, starts=starts, goals=goals, name=f"open{size}")
+        layout = cls(size=size, starts=starts, goals=goals, name=f"open{size}")
+        return layout if start_regions is None else layout.with_start_regions(start_regions)
+
+    def with_start_regions(self, regions) -> GridLayout:
+        """This layout with varied starts: expert ``i`` starts uniformly in the free
+        (non-obstacle) cells of the rectangle ``regions[i] = (x0, y0, x1, y1)``, corners
+        included (``x0 <= x1``, ``y0 <= y1``). Rectangles beyond the number of experts are
+        unused, so that one list serves ``n_experts`` = 1, 2, 3 as the starts' table does.
+        Each rectangle must contain its expert's start (the nominal one), and the
+        rectangles' free cells must not overlap.
+
+        Raises:
+            ValueError: naming the rectangle at fault and the fix.
+        """
+        try:
+            rects = [tuple(int(v) for v in r) for r in regions]
+        except (TypeError, ValueError):
+            rects = None
+        if rects is None or any(len(r) != 4 for r in rects):
+            raise ValueError(f"start_regions must be one rectangle [x0, y0, x1, y1] per expert, "
+                             f"got {regions!r}; e.g. [[0, 0, 3, 8], [5, 0, 8, 8]].")
+        if len(rects) < self.n_experts:
+            raise ValueError(f"start_regions gives {len(rects)} rectangle(s) for "
+                             f"{self.n_experts} experts; add one [x0, y0, x1, y1] for each "
+                             f"expert after the first {len(rects)}.")
+        obstacles, G = set(self.obstacles), self.size
+        sets = []
+        for i, (x0, y0, x1, y1) in enumerate(rects[:self.n_experts]):
+            if not (0 <= x0 <= x1 < G and 0 <= y0 <= y1 < G):
+                raise ValueError(f"start region {[x0, y0, x1, y1]} of expert {i + 1} is not a "
+                                 f"rectangle [x0, y0, x1, y1] inside the {G}x{G} grid (need "
+                                 f"0 <= x0 <= x1 <= {G - 1} and 0 <= y0 <= y1 <= {G - 1}).")
+            cells = tuple((x, y) for y in range(y0, y1 + 1) for x in range(x0, x1 + 1)
+                          if (x, y) not in obstacles)
+            if not cells:
+                raise ValueError(f"start region {[x0, y0, x1, y1]} of expert {i + 1} holds only "
+                                 f"obstacles; give it at least one free cell.")
+            if tuple(self.starts[i]) not in cells:
+                raise ValueError(f"start region {[x0, y0, x1, y1]} of expert {i + 1} does not "
+                                 f"contain its start {tuple(self.starts[i])}; widen it.")
+            sets.append(cells)
+        return replace(self, start_sets=tuple(sets))
 
     # ---- derived quantities -------------------------------------------------------
     @property
@@ -144,7 +272,21 @@ class GridLayout:
 
     @property
     def start_cells(self) -> tuple[int, ...]:
+        """The nominal (fixed) start cell of each expert, as cell indices ``[N]``."""
         return tuple(self.cell(c) for c in self.starts)
+
+    @property
+    def start_cell_sets(self) -> tuple[tuple[int, ...], ...]:
+        """Each expert's start cells (cell indices, ascending): P0 is uniform over each,
+        independently. With fixed starts, the singletons of :attr:`start_cells`."""
+        if self.start_sets is None:
+            return tuple((c,) for c in self.start_cells)
+        return tuple(tuple(self.cell(c) for c in cells) for cells in self.start_sets)
+
+    @property
+    def varied_start(self) -> bool:
+        """Whether some expert's start is drawn (P0 is not a point mass)."""
+        return any(len(s) > 1 for s in self.start_cell_sets)
 
     @property
     def goal_cells(self) -> tuple[int, ...]:
@@ -235,7 +377,7 @@ class TabularGridModel:
     never materialised by the solver (see :mod:`dicrl_torch.solvers.factored`).
 
     Args:
-        layout: the grid; only its size, starts (P0) and experts count are used.
+        layout: the grid; only its size, start sets (P0) and experts count are used.
         horizon: number of decisions ``T`` in an episode.
         gamma: discount factor in ``(0, 1]``.
         p_success: probability that an action succeeds (docs/design.md §3: 0.8).
@@ -279,13 +421,40 @@ class TabularGridModel:
 
     @property
     def start_state(self) -> tuple[int, ...]:
+        """The nominal joint start ``[N]`` (the layout's ``starts``): P0's only state with
+        fixed starts, one of its states with varied ones (:meth:`start_support`)."""
         return self.layout.start_cells
 
     def initial_distribution(self) -> torch.Tensor:
-        """P0 as a ``state_shape`` float64 tensor (all mass on the start cells)."""
-        p0 = torch.zeros(self.state_shape, dtype=torch.float64)
-        p0[self.start_state] = 1.0
+        """P0 as a ``state_shape`` (``[S1] * N``) float64 tensor summing to 1: the product
+        of each expert's uniform distribution over its start cells (a point mass on
+        :attr:`start_state` with fixed starts)."""
+        p0 = None
+        for cells in self.layout.start_cell_sets:
+            p = torch.zeros(self.n_cells, dtype=torch.float64)
+            p[list(cells)] = 1.0 / len(cells)
+            p0 = p if p0 is None else p0.unsqueeze(-1) * p  # expert 1 the leading axis
         return p0
+
+    def start_support(self) -> torch.Tensor:
+        """``[K, N]`` int64: the joint start states P0 gives mass to, ``K = Π_i |set_i|``,
+        in ascending joint index (expert 1 most significant). P0 is uniform over them
+        (``1 / K`` each); ``[[*start_state]]`` with fixed starts."""
+        sets = [torch.tensor(cells, dtype=torch.int64) for cells in self.layout.start_cell_sets]
+        return torch.cartesian_prod(*sets).reshape(-1, self.n_experts)
+
+    def sample_starts(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """``[n, N]`` int64 joint start cells drawn from P0 with ``generator``: each
+        expert with more than one start cell draws ``torch.randint`` over its set, in
+        expert order. Experts with one start cell draw nothing, so with fixed starts the
+        generator's stream is untouched (rollouts and samples stay as they were)."""
+        cells = torch.tensor(self.start_state, dtype=torch.int64).expand(n, self.n_experts)
+        cells = cells.clone()
+        for i, options in enumerate(self.layout.start_cell_sets):
+            if len(options) > 1:
+                pick = torch.randint(len(options), (n,), generator=generator)
+                cells[:, i] = torch.tensor(options, dtype=torch.int64)[pick]
+        return cells
 
     def expert_transition(self) -> torch.Tensor:
         """``[S1, A1, S1]`` float64: one expert's transition kernel P_i(s'|s, a)."""

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from dicrl_torch.demos.storage import Demonstrations
-from dicrl_torch.envs.grid import GridLayout, TabularGridModel, decode_joint
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel, decode_joint, encode_joint
 from dicrl_torch.features.bases import FactoredFeatures, FactoredReward, _collision_table
 from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
 
@@ -69,10 +69,20 @@ def expert_solution(*, solver: FactoredSoftBellman, reward_features: FactoredFea
         terminal = forbidden_state_value(solver.model, layout)
     sol = solver.solve(reward, temperature=temperature, forward=False,
                        terminal_value=terminal)
-    start_value = float(sol.V[(0,) + solver.model.start_state])
-    if not math.isfinite(start_value):
-        raise ValueError("The experts cannot avoid violating a constraint from the start "
-                         "state in this layout/horizon; change the layout.")
+    # Every start state P0 gives mass to must be safe, not only the nominal one: a
+    # trajectory drawn from a doomed start would violate a true constraint.
+    m = solver.model
+    support = m.start_support()  # [K, N]
+    v0 = sol.V[0].reshape(-1)[encode_joint(support, m.n_cells).to(sol.V.device)]
+    doomed = torch.nonzero(~torch.isfinite(v0.double().cpu())).flatten()
+    if doomed.numel():
+        cells = [m.layout.xy(int(c)) for c in support[int(doomed[0])]]
+        what = ("the start state" if support.shape[0] == 1 else
+                f"{doomed.numel()} of the {support.shape[0]} start states P0 gives mass to, "
+                f"e.g.")
+        raise ValueError(f"The experts cannot avoid violating a constraint from {what} "
+                         f"{cells} in this layout/horizon; change the layout (its starts or "
+                         f"start sets) or the horizon.")
     return sol
 
 
@@ -91,7 +101,8 @@ def sample_trajectories(solution: SoftBellmanSolution, n: int,
                         rng: np.random.Generator | torch.Generator | int) -> Demonstrations:
     """Sample ``n`` trajectories of the solution's policy in the learner's model (the
     nominal dynamics; an expert that never violates never freezes, so this equals the
-    true CMG for constrained experts).
+    true CMG for constrained experts), each from a start drawn from the model's P0
+    (:meth:`~dicrl_torch.envs.grid.TabularGridModel.sample_starts`) with ``rng``.
 
     Returns:
         :class:`Demonstrations` with states ``[n, T+1, N]`` and actions ``[n, T, N]``.
@@ -102,7 +113,8 @@ def sample_trajectories(solution: SoftBellmanSolution, n: int,
     m = solution.solver.model
     N, A1, T = m.n_experts, m.n_actions, m.horizon
     nxt = m.next_cell
-    cells = torch.tensor(m.start_state, dtype=torch.int64).expand(n, N).clone()
+    # each trajectory's start drawn from P0 (no draw with fixed starts)
+    cells = m.sample_starts(n, g)
     states = torch.empty(n, T + 1, N, dtype=torch.int64)
     actions = torch.empty(n, T, N, dtype=torch.int64)
     states[:, 0] = cells
