@@ -5,6 +5,10 @@
   ones (Fig. 2a) or a learner's learned ones (Fig. 2b).
 - :func:`metric_curves`: CR, FPR, FNR, CVR and RFD against the outer iteration, one line
   per learner, the baselines and experts as horizontal reference lines (Fig. 2c-2g).
+- :func:`identifiability_map` (not in the paper): the true constraint cells coloured by
+  their identifiability class (docs/design.md §6), optionally with a learned set as
+  crosses; :func:`identifiability_legend` names the classes and the features without a
+  cell.
 
 Pure functions of arrays and plain dicts (the ``history`` and table rows of
 ``results.json``): no Hydra, no trainer. Every figure is drawn on a private Agg canvas,
@@ -16,6 +20,7 @@ takes as is.
 from __future__ import annotations
 
 import re
+import textwrap
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
@@ -23,6 +28,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
 
 from dicrl_torch.envs.grid import GridLayout
 from dicrl_torch.envs.gridworld_env import render_grid
@@ -138,6 +144,167 @@ def side_by_side(images: Sequence[np.ndarray]) -> np.ndarray:
     h = max(im.shape[0] for im in images)
     return np.concatenate([np.pad(im, ((0, h - im.shape[0]), (0, 0), (0, 0)),
                                   constant_values=255) for im in images], axis=1)
+
+
+def tiled(images: Sequence[np.ndarray], max_width: int = 1400) -> np.ndarray:
+    """Images in rows of :func:`side_by_side`, a new row where the next image would make
+    one wider than ``max_width`` pixels; rows stacked, narrower ones padded white right."""
+    if not images:
+        raise ValueError("tiled needs at least one image.")
+    rows: list[list[np.ndarray]] = [[]]
+    for im in images:
+        if rows[-1] and sum(i.shape[1] for i in rows[-1]) + im.shape[1] > max_width:
+            rows.append([])
+        rows[-1].append(im)
+    strips = [side_by_side(r) for r in rows]
+    w = max(s.shape[1] for s in strips)
+    return np.concatenate([np.pad(s, ((0, 0), (0, w - s.shape[1]), (0, 0)),
+                                  constant_values=255) for s in strips], axis=0)
+
+
+# ---------------------------------------------------------------------- identifiability
+IDENTIFIABILITY_CLASSES = ("demonstrated", "required", "undetermined")
+# Okabe-Ito colours, apart from the experts' (blue, orange, green) and the crosses' red;
+# "mixed": a cell whose features (one per expert in a per-expert basis) differ in class.
+CLASS_COLOURS = {"demonstrated": "#CC79A7", "required": "#F0E442",
+                 "undetermined": "#56B4E9", "mixed": "#BBBBBB"}
+
+
+def identifiability_cells(layout: GridLayout, classes: Mapping[str, Iterable[str]],
+                          region_cells: Mapping[str, Iterable[int]] | None = None
+                          ) -> tuple[dict[int, str], dict[str, str]]:
+    """Where the classified features lie.
+
+    Args:
+        classes: class -> feature names, for the classes of
+            :data:`IDENTIFIABILITY_CLASSES` (``Identifiability.as_dict()``, the
+            ``identifiability`` record of ``results.json``); other keys are ignored.
+        region_cells: a cost basis' ``region_cells`` (see :func:`constraint_cells`).
+
+    Returns:
+        ``cell -> class`` (``"mixed"`` where the features on a cell differ in class) and
+        ``name -> class`` of the features without a cell (actions, collision), in the
+        order given.
+    """
+    on_cell: dict[int, set[str]] = {}
+    off_grid: dict[str, str] = {}
+    for cls in IDENTIFIABILITY_CLASSES:
+        for name in classes.get(cls, ()):
+            cells = constraint_cells(layout, [name], region_cells)
+            for c in cells:
+                on_cell.setdefault(c, set()).add(cls)
+            if not cells:
+                off_grid[name] = cls
+    return ({c: next(iter(k)) if len(k) == 1 else "mixed" for c, k in sorted(on_cell.items())},
+            off_grid)
+
+
+def identifiability_map(layout: GridLayout, cell_classes: Mapping[int, str], *,
+                        constraint_cells: Iterable[int] = (), title: str = "") -> np.ndarray:
+    """:func:`render_grid` (obstacles, starts, goals, ``constraint_cells`` as red crosses)
+    with each cell of ``cell_classes`` (:func:`identifiability_cells`) filled in its
+    :data:`CLASS_COLOURS`, under the markers, crosses and grid lines.
+
+    Returns:
+        The RGB image ``[H, W, 3]`` uint8, the size of :func:`render_grid`'s.
+    """
+    unknown = sorted(set(cell_classes.values()) - set(CLASS_COLOURS))
+    if unknown:
+        raise ValueError(f"unknown identifiability classes {unknown}; use "
+                         f"{list(CLASS_COLOURS)}.")
+    return render_grid(layout, constraint_cells=constraint_cells, title=title,
+                       cell_colours={c: CLASS_COLOURS[cls] for c, cls in cell_classes.items()})
+
+
+def identifiability_legend(off_grid: Mapping[str, str], *, mixed: bool = False,
+                           height: int = 320, max_listed: int = 10) -> np.ndarray:
+    """A legend panel ``[height, W, 3]``: the class colours (and ``"mixed"`` if
+    ``mixed``) and the features without a cell with their class (``off_grid``, from
+    :func:`identifiability_cells`; at most ``max_listed`` named)."""
+    fig = Figure(figsize=(2.6, height / DPI), dpi=DPI)
+    canvas = FigureCanvasAgg(fig)
+    shown = [*IDENTIFIABILITY_CLASSES, *(["mixed"] if mixed else [])]
+    labels = {"mixed": "mixed (per-expert\nfeatures differ)"}
+    legend = fig.legend([Patch(fc=CLASS_COLOURS[c], ec="0.3") for c in shown] +
+                        [Line2D([], [], ls="", marker="x", ms=9, mew=2, color="red")],
+                        [labels.get(c, c) for c in shown] + ["learned constraint"],
+                        loc="upper left", title="true constraints", fontsize=9,
+                        title_fontsize=9, frameon=False)
+    lines = [f"{name}: {cls}" for name, cls in list(off_grid.items())[:max_listed]]
+    if len(off_grid) > max_listed:
+        lines.append(f"and {len(off_grid) - max_listed} more")
+    canvas.draw()
+    below = legend.get_window_extent().transformed(fig.transFigure.inverted()).y0
+    fig.text(0.05, below - 0.04, "true constraints not on a cell:\n" +
+             ("\n".join(lines) or "none"), va="top", fontsize=8)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+
+
+# The longest line of a render_grid title (8 pt, centred over the axes of a 3.6 in wide
+# figure): a line of about 60 characters of feature names reaches the figure's edges.
+_TITLE_CHARS = 45
+_NBSP = "\N{NO-BREAK SPACE}"  # keeps a feature name such as "action NE" on one line
+
+
+def _wrap(text: str) -> list[str]:
+    """``text`` wrapped at :data:`_TITLE_CHARS`, broken only at (breaking) spaces."""
+    lines = textwrap.wrap(text, _TITLE_CHARS, break_long_words=False, break_on_hyphens=False)
+    return [line.replace(_NBSP, " ") for line in lines] or [""]
+
+
+def _listing(prefix: str, names: Sequence[str], max_lines: int = 2) -> list[str]:
+    """``prefix`` and as many of ``names`` as fit in ``max_lines`` wrapped title lines, the
+    rest counted (``+2 more``); ``prefix none`` if there are no names."""
+    if not names:
+        return _wrap(f"{prefix} none")
+    for k in range(len(names), 0, -1):
+        shown = [n.replace(" ", _NBSP) for n in names[:k]]
+        if k < len(names):
+            shown.append(f"+{len(names) - k}{_NBSP}more")
+        lines = _wrap(f"{prefix} " + ", ".join(shown))
+        if len(lines) <= max_lines:
+            return lines
+    return _wrap(f"{prefix} +{len(names)}{_NBSP}more")
+
+
+def _rate(value) -> str:
+    return "N/A" if value is None else format(value, ".2f")
+
+
+def identifiability_figure(layout: GridLayout, classes: Mapping[str, Iterable[str]],
+                           rows: Mapping[str, Mapping], *,
+                           region_cells: Mapping[str, Iterable[int]] | None = None,
+                           max_width: int = 1400) -> np.ndarray:
+    """The true constraints by identifiability class (docs/design.md §6) beside each
+    learned set: first the classes and their legend, then one panel per learned row,
+    its constraints as crosses and its FPR / FNR / FNR_required in the title; rows
+    wrap at ``max_width`` pixels (:func:`tiled`).
+
+    Args:
+        classes: class -> true constraint names (``Identifiability.as_dict()``).
+        rows: panel label -> table row with ``constraints`` (feature names), ``FPR``,
+            ``FNR`` and ``FNR_required`` (None or missing: N/A).
+        region_cells: the cost basis' ``region_cells``.
+    """
+    cells, off_grid = identifiability_cells(layout, classes, region_cells)
+    counts = ", ".join(f"{len(list(classes.get(c, ())))} {c}" for c in IDENTIFIABILITY_CLASSES)
+    title = [*_wrap("True constraints by identifiability class"), *_wrap(counts)]
+    panels = [identifiability_map(layout, cells, title="\n".join(title)),
+              identifiability_legend(off_grid, mixed="mixed" in cells.values())]
+    true_class = {n: c for c in IDENTIFIABILITY_CLASSES for n in classes.get(c, ())}
+    for label, row in rows.items():
+        learned = list(row["constraints"])
+        # learned features without a cell (their classes are in the legend), false ones
+        # marked; at most two lines of the title
+        off = [n if n in true_class else f"{n} (false)" for n in learned
+               if not constraint_cells(layout, [n], region_cells)]
+        lines = _listing(f"{len(learned)} learned (x); not on a cell:", off)
+        rates = ", ".join(f"{k} {_rate(row.get(k))}" for k in ("FPR", "FNR", "FNR_required"))
+        panels.append(identifiability_map(
+            layout, cells, constraint_cells=constraint_cells(layout, learned, region_cells),
+            title="\n".join([*_wrap(label), *_wrap(rates), *lines])))
+    return tiled(panels, max_width)
 
 
 # ---------------------------------------------------------------------- metric curves

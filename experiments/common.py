@@ -75,7 +75,10 @@ def grid_task(cfg, rank: int | None = None):
         split=split, seed=cfg.seed, eval_episodes=cfg.eval_episodes,
         shard_files=None if files is None else list(files),
         read_shards=None if files is None else shard_files_read_by(cfg, rank),
-        with_experts=with_experts, threshold=a.threshold, prune_min_gain=a.prune_min_gain,
+        with_experts=with_experts, constraint_rule=a.constraint_rule,
+        certificate_temperature=a.certificate.temperature,
+        certificate_min_probability=a.certificate.min_probability,
+        threshold=a.threshold, prune_min_gain=a.prune_min_gain,
         baselines=list(b.run), baseline_max_constraints=b.max_constraints,
         baseline_epsilon=None if b.epsilon is None else float(b.epsilon))
 

@@ -76,6 +76,13 @@ VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
      "a number in [0, 1] (ω_c(0) lives in [0, 1]^d)", "0.0"),
     ("algo.init_reward_weights", float, None, "a finite number", "0.0"),
     ("algo.init_multiplier", float, None, "a finite number (λ(0))", "-1.0"),
+    ("algo.constraint_rule", str, lambda x: x in ("certificate", "threshold"),
+     "'certificate' (the grid's certified set) or 'threshold' (the paper's ω_c >= "
+     "threshold)", "certificate"),
+    ("algo.certificate.temperature", float, _ge(0.0),
+     "a number >= 0 (the certificate's experts; 0: optimal)", "0.0"),
+    ("algo.certificate.min_probability", float, lambda x: 0 < x <= 1,
+     "a number in (0, 1] (per-trajectory probability that certifies a feature)", "0.001"),
     ("algo.threshold", float, _in_open(0.0, 1.0),
      "a number in (0, 1) (ω_c,j >= threshold marks a learned constraint)", "0.5"),
     ("algo.prune_min_gain", float | None, _ge(0.0),
@@ -134,8 +141,9 @@ KNOWN_KEYS = {
     "graph": {"inner", "outer"},
     "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",
              "lsca_curvature", "prune_accrued", "init_cost_weights", "init_reward_weights",
-             "init_multiplier", "threshold", "prune_min_gain", "run_c_icrl",
-             "run_d_icrl"},
+             "init_multiplier", "constraint_rule", "certificate", "threshold",
+             "prune_min_gain", "run_c_icrl", "run_d_icrl"},
+    "algo.certificate": {"temperature", "min_probability"},
     "baselines": {"run", "epsilon", "max_constraints", "penalty", "timesteps"},
 }
 _HYDRA_KEYS = {"_target_", "_partial_", "_args_", "_recursive_", "_convert_"}
@@ -184,6 +192,19 @@ def _unknown_keys(node, path: str, problems: list[str], skip: frozenset[str] = f
                             f"{hint} it or fix its spelling.")
     for key in keys:
         _unknown_keys(node[key], f"{path}.{key}" if path else key, problems, skip)
+
+
+def _check_layout(cfg, problems: list[str]) -> None:
+    """The grid layout's own checks (start sets off obstacles and disjoint, cells inside the
+    grid, ...) as config problems: building it takes microseconds."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    try:
+        instantiate(cfg.env.layout)
+    except (ValueError, TypeError, InstantiationException) as e:
+        cause = e.__cause__ if isinstance(e, InstantiationException) and e.__cause__ else e
+        problems.append(f"env.layout: {cause}")
 
 
 def _check_shard_files(cfg, drones: bool, problems: list[str]) -> None:
@@ -442,6 +463,8 @@ def check_config(cfg: DictConfig) -> None:
                         f"{cfg.n_demonstrations}; make them agree (e.g. n_demonstrations="
                         f"{sum(split)}).")
     _check_shard_files(cfg, drones, problems)
+    if not drones and "env" not in misfits and not problems:
+        _check_layout(cfg, problems)
     names, example = (list(DRONE_BASELINES), "baselines=greedy_drones") if drones else \
         (list(BASELINES), "baselines=greedy")
     if "baselines" not in misfits and not (
@@ -450,6 +473,10 @@ def check_config(cfg: DictConfig) -> None:
         problems.append(f"baselines.run={_plain(run)} is invalid: it must be a list of "
                         f"distinct names among {names} (the rows to add; [] for "
                         f"none); set e.g. {example} or baselines=none.")
+    if drones and OmegaConf.select(cfg, "algo.constraint_rule", default=None) == "certificate":
+        problems.append("algo.constraint_rule=certificate needs the grid world's exact "
+                        "solver (one solve per unseen feature); the drone arena keeps the "
+                        "paper's rule: set algo.constraint_rule=threshold.")
     checks = OmegaConf.select(cfg, "solver.final_checks", default=None)
     final = OmegaConf.select(cfg, "solver.final_timesteps", default=None)
     if drones and _type_ok(checks, int) and _type_ok(final, int) and 1 <= final < checks:

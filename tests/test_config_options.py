@@ -69,6 +69,11 @@ RUNS = [
          "features/cost": "per_expert", "solver": "factored", "algo": "dicrl",
          "graph": "ring", "comm": "simulated", "logger": "none", "baselines": "none"},
         GRID_TINY, [*BILEVEL, *GRID_EXPERTS]),
+    Run("grid-quick_soft-shared-ring",
+        {"experiment": "quick_soft", "env": "gridworld", "features/reward": "goal_closeness",
+         "features/cost": "shared", "solver": "factored", "algo": "dicrl",
+         "graph": "ring", "comm": "simulated", "logger": "none", "baselines": "none"},
+        GRID_TINY, [*BILEVEL, *GRID_EXPERTS]),
     Run("grid-table1-open-regions-greedy",
         {"experiment": "table1", "env": "gridworld_open", "features/reward": "goal_closeness",
          "features/cost": "regions", "solver": "factored", "algo": "dicrl",
@@ -80,11 +85,13 @@ RUNS = [
          "features/cost": "random_mlp", "solver": "factored", "algo": "dicrl",
          "graph": "complete", "comm": "simulated", "logger": "tensorboard",
          "baselines": "greedy"},
-        GRID_TINY, [*BILEVEL, "ME-greedy", "MCE-greedy", *GRID_EXPERTS], truth=False),
-    Run("grid-quick-shared-time_varying",
-        {"experiment": "quick", "env": "gridworld", "features/reward": "goal_closeness",
-         "features/cost": "shared", "solver": "factored", "algo": "dicrl",
-         "graph": "time_varying", "comm": "simulated", "logger": "none",
+        GRID_TINY, [*BILEVEL, "ME-greedy", "MCE-greedy", *GRID_EXPERTS], truth=False,
+        # a basis positive everywhere: no certificate, the paper's rule
+        extra=["algo.constraint_rule=threshold"]),
+    Run("grid-quick_varied-shared-time_varying",
+        {"experiment": "quick_varied", "env": "gridworld_varied",
+         "features/reward": "goal_closeness", "features/cost": "shared", "solver": "factored",
+         "algo": "dicrl", "graph": "time_varying", "comm": "simulated", "logger": "none",
          "baselines": "none"},
         GRID_TINY, [*BILEVEL, *GRID_EXPERTS]),
     Run("drones-table2_quick-fourier-rbf-greedy",
@@ -105,6 +112,9 @@ RUNS = [
 COVERED_ELSEWHERE = {
     ("comm", "distributed"):
         "tests/test_train_distributed.py::test_spawned_learners_reproduce_the_simulated_run",
+    # its tiny run (the first 2 of its 3 experts, T = 8) is in the varied-start tests
+    ("experiment", "table1_varied"):
+        "tests/test_varied_start.py::test_table1_varied_runs_one_outer_iteration_at_reduced_scale",
 }
 
 

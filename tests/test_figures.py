@@ -8,22 +8,34 @@ import json
 import matplotlib.image
 import numpy as np
 import pytest
+import torch
 from test_configs import run_train  # the tiny end-to-end run (TINY: 2 learners)
 from tiny_dicrl import build_tiny
 from tiny_train import compose_train
 
-from dicrl_torch.envs.grid import GridLayout
+from dicrl_torch.algos.identifiability import Identifiability
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+from dicrl_torch.envs.gridworld_env import render_grid
+from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
 from dicrl_torch.figures import (
+    CLASS_COLOURS,
     CURVES_FIGSIZE,
     DPI,
     constraint_cells,
+    identifiability_cells,
+    identifiability_figure,
+    identifiability_legend,
+    identifiability_map,
     metric_curves,
     obstacle_cells,
     side_by_side,
     state_visitation,
+    tiled,
     visitation_heatmap,
 )
+from dicrl_torch.runs.grid import GridTask
 from dicrl_torch.solvers.experts import sample_trajectories
+from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 LAYOUT = GridLayout.open_grid(5, 1)  # no obstacles; start (0, 4), goal (4, 4)
 LEFT, RIGHT = LAYOUT.cell((1, 1)), LAYOUT.cell((3, 1))  # free cells in one row
@@ -206,7 +218,133 @@ def test_tiny_run_records_the_curves_and_writes_the_figures(tmp_path):
             assert hist[-1]["RFD"][i] == row["RFD"]
             assert isinstance(row["constraints"], list)
     for name in ("fig2a_true_visitation", "fig2b_learned_constraints",
-                 "fig2c-g_metric_curves"):
+                 "fig2c-g_metric_curves", "identifiability_classes"):
         path = tmp_path / f"{name}.png"
         assert matplotlib.image.imread(path).ndim == 3 and str(path) in out.stdout
     assert (tmp_path / "tb" / "figures").is_dir()
+
+
+# ---------------------------------------------------------------------- identifiability
+# 4x4, one expert; true constraints: three obstacle cells and the action NE
+WALLED = GridLayout(size=4, starts=((0, 3),), goals=((3, 3),),
+                    obstacles=((1, 1), (2, 1), (1, 2)), forbidden_actions=("NE",))
+CLASSES = {"demonstrated": ["cell(1,1)"], "required": ["cell(2,1)", "action NE"],
+           "undetermined": ["cell(1,2)"]}
+
+
+def colour_mask(img: np.ndarray, cls: str) -> np.ndarray:
+    """``[H, W]`` pixels of ``cls``'s colour."""
+    rgb = [int(CLASS_COLOURS[cls][k:k + 2], 16) for k in (1, 3, 5)]
+    return (np.abs(img.astype(int) - rgb) <= 2).all(2)
+
+
+def test_identifiability_cells_by_hand():
+    cells, off = identifiability_cells(WALLED, {**CLASSES, "n_required": 2})
+    at = WALLED.cell
+    assert cells == {at((1, 1)): "demonstrated", at((2, 1)): "required",
+                     at((1, 2)): "undetermined"}
+    assert off == {"action NE": "required"}
+    # a region stands for its cells; per-expert features of one cell that differ: mixed
+    cells, off = identifiability_cells(
+        WALLED, {"required": ["region wall", "expert0/cell(3,0)", "collision"],
+                 "undetermined": ["expert1/cell(3,0)"]}, {"region wall": (0, 1)})
+    assert cells == {0: "required", 1: "required", at((3, 0)): "mixed"}
+    assert off == {"collision": "required"}
+
+
+def cell_centre(layout: GridLayout, cell: int, title: str) -> tuple[int, int]:
+    """``(row, column)`` pixel of ``cell``'s centre in render_grid's image with ``title``:
+    the centre of its cross there."""
+    ys, xs = np.nonzero(red_pixels(render_grid(layout, constraint_cells=[cell], title=title)))
+    return round(ys.mean()), round(xs.mean())
+
+
+def test_identifiability_map_colours_each_cell_by_its_class():
+    cells, off = identifiability_cells(WALLED, CLASSES)
+    img = identifiability_map(WALLED, cells, title="classes")
+    assert img.shape == render_grid(WALLED, title="classes").shape and img.dtype == np.uint8
+    pitch = cell_centre(WALLED, 1, "classes")[1] - cell_centre(WALLED, 0, "classes")[1]
+    for cell, cls in cells.items():
+        y, x = cell_centre(WALLED, cell, "classes")
+        assert colour_mask(img[y - 5:y + 6, x - 5:x + 6], cls).all(), cls
+        # the whole cell, and no other
+        assert 0.85 * pitch ** 2 < colour_mask(img, cls).sum() < 1.15 * pitch ** 2, cls
+    y, x = cell_centre(WALLED, WALLED.cell((2, 2)), "classes")
+    assert (img[y, x] == 255).all()  # a free cell stays white
+    # learned crosses on top of the colours
+    crossed = identifiability_map(WALLED, cells, constraint_cells=list(cells), title="classes")
+    assert red_pixels(crossed).sum() > 3 * 20
+    with pytest.raises(ValueError, match="unknown identifiability classes"):
+        identifiability_map(WALLED, {0: "probable"})
+    legend = identifiability_legend(off)
+    assert legend.shape[0] == img.shape[0] and colour_mask(legend, "required").any()
+    mixed = identifiability_legend(off, mixed=True)  # its patch only when asked
+    assert colour_mask(mixed, "mixed").sum() > colour_mask(legend, "mixed").sum() + 50
+
+
+def test_identifiability_titles_fit_their_panels():
+    # long names of features without a cell (per-expert actions of 3 experts, false ones)
+    actions = [f"expert{i}/action {a}" for i in range(3) for a in ("NE", "NW")]
+    classes = {"required": ["cell(2,1)", *actions, "collision"], "undetermined": ["cell(1,2)"]}
+    rows = {"D-ICRL learner 1": {"constraints": ["cell(2,1)", *actions, "collision",
+                                                "expert2/action SE", "expert0/action SW"],
+                                "FPR": 0.125, "FNR": None, "FNR_required": 0.0},
+            "C-ICRL": {"constraints": []}}
+    img = identifiability_figure(WALLED, classes, rows, max_width=10_000)
+    w, legend = render_grid(WALLED, title="x").shape[1], identifiability_legend({}).shape[1]
+    assert img.shape[1] == 3 * w + legend
+    for x in (0, w + legend, 2 * w + legend):  # the classes' panel, then the learners'
+        panel = img[:, x:x + w]
+        assert (panel[:, :3] == 255).all() and (panel[:, -3:] == 255).all(), x  # no clipping
+        assert (panel[:40] < 128).any(2).sum() > 200, x  # a title is there
+
+
+def test_tiled_wraps_wide_rows():
+    ims = [np.zeros((3, 4, 3), np.uint8), np.zeros((5, 4, 3), np.uint8),
+           np.zeros((2, 4, 3), np.uint8)]
+    assert tiled(ims, max_width=100).shape == (5, 12, 3)
+    img = tiled(ims, max_width=9)  # two rows: 3 + 5 high, then 2 high padded to 8 wide
+    assert img.shape == (7, 8, 3) and (img[5:, 4:] == 255).all() and (img[5:, :4] == 0).all()
+
+
+def walled_task() -> GridTask:
+    model = TabularGridModel(layout=WALLED, horizon=6, gamma=0.95)
+    rb = GoalClosenessRewardBasis(model)
+    return GridTask(layout=WALLED, model=model,
+                    solver=FactoredSoftBellman(model=model, dtype=torch.float64),
+                    reward_basis=rb, cost_basis=SharedIndicatorCostBasis(model),
+                    true_reward_weights=rb.true_weights(), split=[2, 3], seed=0,
+                    eval_episodes=2, constraint_rule="threshold")
+
+
+def hand_made_identifiability(names: list[str]) -> Identifiability:
+    def mask(members):
+        return torch.tensor([n in members for n in names])
+    scope = mask([n for c in CLASSES.values() for n in c])
+    return Identifiability(names=names, scope=scope, demonstrated=mask(CLASSES["demonstrated"]),
+                           required=mask(CLASSES["required"]),
+                           undetermined=mask(CLASSES["undetermined"]),
+                           probability=torch.full((len(names),), float("nan")),
+                           infeasible=mask([]))
+
+
+def test_grid_task_draws_the_identifiability_classes():
+    task = walled_task()
+    row = {"CR_mean": 1.0, "FPR": 0.5, "FNR": None, "FNR_required": 0.0,
+           "constraints": ["cell(2,1)", "cell(0,0)", "action NE"]}
+    methods = {"D-ICRL": {"learners": [row, row]}, "C-ICRL": {"learners": [row]},
+               "Experts (nominal)": {"learners": [{"CR_mean": 2.0}]}}
+    kw = dict(methods=methods, histories={"D-ICRL": history(), "C-ICRL": history(learners=1)},
+              experiment="test", eval_every=1)
+    task.identifiability = lambda: hand_made_identifiability(list(task.cost_basis.names))
+    img = task.figures(**kw)["identifiability_classes"]
+    h, w, _ = render_grid(WALLED, title="x").shape
+    # the classes, their legend, then D-ICRL learner 1, 2 and C-ICRL in one row
+    assert img.shape == (h, 4 * w + identifiability_legend({}).shape[1], 3)
+    for cls in ("demonstrated", "required", "undetermined"):
+        assert colour_mask(img[:, :w], cls).sum() > 100, cls  # the classes' panel
+        assert colour_mask(img[:, -w:], cls).sum() > 100, cls  # the last learner's
+    assert red_pixels(img[:, -w:]).sum() > 2 * 20  # its learned cells crossed
+    task.identifiability = lambda: None  # no ground truth, or not every demonstration
+    images = task.figures(**kw)
+    assert "identifiability_classes" not in images and "fig2b_learned_constraints" in images

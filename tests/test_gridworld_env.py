@@ -255,6 +255,24 @@ def test_render_grid_heat_and_constraints():
         render_grid(layout, constraint_cells=[81])
 
 
+def test_render_grid_fills_cell_colours():
+    layout = GridLayout.open_grid(5, 1)  # no obstacles; start (0, 4), goal (4, 4)
+    cell, free = layout.cell((2, 2)), layout.cell((3, 2))
+
+    def centre(c: int) -> tuple[int, int]:  # pixel of c's centre: that of its red cross
+        img = render_grid(layout, constraint_cells=[c]).astype(int)
+        ys, xs = np.nonzero((img[..., 0] > 200) & (img[..., 1] < 80) & (img[..., 2] < 80))
+        return round(ys.mean()), round(xs.mean())
+
+    img = render_grid(layout, cell_colours={cell: "#ff0000"})
+    assert img.shape == render_grid(layout).shape
+    assert (img[centre(cell)] == [255, 0, 0]).all()
+    assert (img[centre(free)] == 255).all()  # its neighbour stays white
+    assert np.array_equal(render_grid(layout, cell_colours={}), render_grid(layout))
+    with pytest.raises(ValueError, match="cell_colours"):
+        render_grid(layout, cell_colours={25: "red"})
+
+
 # ---- constructor validation ---------------------------------------------------------
 @pytest.mark.parametrize(
     ("kwargs", "match"),

@@ -50,7 +50,7 @@ accrued (and the true experts' demonstrations show such last moves too).
 
 **P0.** ``initial_distribution`` is a joint distribution (``[S1]*N``) or one per expert
 (``[N, S1]``, independent starts); by default the model's (a point mass on the start
-cells). Every demonstration must start where P0 has mass.
+cells, or the product of the varied-start sets). Every demonstration must start where P0 has mass.
 
 **Cost.** One backward solve per classified undemonstrated feature plus the sparse
 forward pass (``experiments/identifiability.py`` prints the time per candidate).
@@ -81,12 +81,18 @@ from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolutio
 __all__ = [
     "Identifiability",
     "accrual_probability",
+    "certify_constraints",
+    "check_indicator_basis",
     "classify_features",
     "fnr_required",
     "joint_initial_distribution",
 ]
 
 MIN_PROBABILITY = 0.01
+# The learners' certificate (certify_constraints): optimal experts under the learned
+# reward, and a threshold ten times below MIN_PROBABILITY (docs/design.md §6).
+CERTIFICATE_TEMPERATURE = 0.0
+CERTIFICATE_MIN_PROBABILITY = 1e-3
 # Joint states per policy query of the forward pass (bounds memory at 3 experts:
 # a query holds [B, (1 + A1)^N] values).
 _CHUNK_STATES = 4096
@@ -232,7 +238,8 @@ def joint_initial_distribution(model: TabularGridModel, p0=None) -> torch.Tensor
 
     Args:
         model: the tabular model.
-        p0: None (the model's own: a point mass on the start cells), a joint
+        p0: None (the model's own P0: a point mass on the start cells with fixed starts,
+            the product of uniform start sets otherwise), a joint
             distribution ``[S1]*N``, or one start distribution per expert ``[N, S1]``
             (independent starts: their product).
 
@@ -272,7 +279,8 @@ class _Hits:
     ``[S]`` (joint part), and on final states ``[S]`` (its state features)."""
 
     def __init__(self, features: FactoredFeatures, target: torch.Tensor,
-                 model: TabularGridModel, device: torch.device) -> None:
+                 model: TabularGridModel, device: torch.device,
+                 final_state: bool = True) -> None:
         N, S1 = model.n_experts, model.n_cells
         self.local = (features.local[..., target] > 0).any(-1).to(device)  # [N, S1, A1]
         self.joint = None
@@ -291,11 +299,13 @@ class _Hits:
             cols = state[features.joint_columns]
             if cols.any():
                 final |= (features.joint[:, cols] > 0).any(-1)
-        self.final = final.to(device)
+        # The learner's model scores (s_t, a_t) for t < T only: without final_state,
+        # landing on a feature at s_T accrues nothing.
+        self.final = (final if final_state else torch.zeros_like(final)).to(device)
 
 
 def accrual_probability(solution: SoftBellmanSolution, features: FactoredFeatures | FeatureBasis,
-                        target, initial_distribution=None) -> float:
+                        target, initial_distribution=None, final_state: bool = True) -> float:
     """``P(a trajectory accrues some feature of target)`` under the solution's policy.
 
     A trajectory accrues ``φ_j`` when ``φ_j(s_t, a_t) > 0`` at some ``t < T`` or, for a
@@ -310,6 +320,8 @@ def accrual_probability(solution: SoftBellmanSolution, features: FactoredFeature
             survival, or an int (one feature).
         initial_distribution: P0 (see :func:`joint_initial_distribution`); default
             the model's.
+        final_state: whether a state feature positive at ``s_T`` is accrued (the true
+            CMG's semantics; False: only ``t < T`` counts, the learners' model's).
     """
     features = features() if isinstance(features, FeatureBasis) else features
     if isinstance(target, int):
@@ -319,7 +331,7 @@ def accrual_probability(solution: SoftBellmanSolution, features: FactoredFeature
     target = _as_mask(target, features.dim, "target")
     solver = solution.solver
     model = solver.model
-    hits = _Hits(features, target, model, solver.device)
+    hits = _Hits(features, target, model, solver.device, final_state)
     d = joint_initial_distribution(model, initial_distribution).reshape(-1).to(solver.device)
     return _killed_forward(solution, hits, d)
 
@@ -382,7 +394,7 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
                       demonstrations: Demonstrations | Sequence[Demonstrations],
                       temperature: float = 0.0, initial_distribution=None,
                       only=None, min_probability: float = MIN_PROBABILITY,
-                      progress: bool = False) -> Identifiability:
+                      final_state: bool = True, progress: bool = False) -> Identifiability:
     """Classify cost features as demonstrated, required or undetermined (module
     docstring).
 
@@ -398,12 +410,14 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
         temperature: the experts' temperature, the one the demonstrations were sampled
             at (0: optimal experts, uniform over ties).
         initial_distribution: P0, joint ``[S1]*N`` or per expert ``[N, S1]``; default
-            the model's start cells.
+            the model's P0.
         only: ``[l]`` bool, classify these features only (e.g. the true constraints:
             a solve per undemonstrated one instead of per feature of ``U``); ``U`` is
             still every undemonstrated feature. None: all.
         min_probability: the per-trajectory probability from which an undemonstrated
             feature is required.
+        final_state: whether reaching a state feature at ``s_T`` accrues it (see
+            :func:`accrual_probability`); "demonstrated" always counts ``s_T``.
         progress: a tqdm bar over the candidates.
 
     Raises:
@@ -461,8 +475,8 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
             continue
         target = torch.zeros(features.dim, dtype=torch.bool)
         target[j] = True
-        probability[j] = _killed_forward(sol, _Hits(features, target, model, solver.device),
-                                         d0)
+        probability[j] = _killed_forward(
+            sol, _Hits(features, target, model, solver.device, final_state), d0)
     seconds = time.perf_counter() - t0
     required = unseen & scope & (probability >= min_probability)
     return Identifiability(
@@ -473,7 +487,64 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
         accrued=demonstrated)
 
 
+# ------------------------------------------------------------------------ certificate
+def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
+                        cost_basis: FeatureBasis | FactoredFeatures,
+                        demonstrations: Demonstrations | Sequence[Demonstrations],
+                        temperature: float = CERTIFICATE_TEMPERATURE,
+                        min_probability: float = CERTIFICATE_MIN_PROBABILITY,
+                        initial_distribution=None, progress: bool = False) -> Identifiability:
+    """A learner's constraint set from what it holds: the "required" test of
+    :func:`classify_features` asked of the learner's own model (docs/design.md §6).
+
+    A certified feature ``j`` is one the learner's demonstrations (and P0) never accrue,
+    and that experts optimal for the learned reward would still accrue with probability
+    ``>= min_probability`` per trajectory if ``j`` alone were allowed and every other
+    unseen feature forbidden: within the learner's model the data rule ``j`` out, whatever
+    the undemonstrated rest is. No ground truth enters: the reward is the learner's
+    ``ω_r · φ_r`` (its λ ω_c term left out: the constraints are what is being decided),
+    the demonstrations its own shard, the dynamics and P0 the nominal model's.
+
+    Differences from the evaluation's classification, each for a reason:
+
+    - ``temperature`` 0: the learners' model is maximum-causal-entropy at temperature 1,
+      but on optimal demonstrations the scale of the learned ω_r grows without bound
+      (docs/design.md §6, RFD), so the learned policy tends to the hard max: temperature
+      0 is that limit, and at temperature 1 softly reachable cells beside the route
+      (next to a start, say) would be certified too.
+    - ``min_probability`` 1e-3, ten times below the evaluation's 0.01: the learned reward
+      is an estimate, and a required feature near the evaluation's threshold (a slip-only
+      shortcut) can fall below it under the estimate (measured in docs/experiments.md).
+    - ``final_state`` False: the learners' likelihood scores ``(s_t, a_t)`` for ``t < T``
+      only, so the last move (unscored: any safe move is optimal) certifies nothing.
+
+    Args:
+        solver: the factored solver of the learners' nominal model.
+        reward: the learned reward, ``reward_basis().weighted(η̄[:-1])``.
+        cost_basis, demonstrations, initial_distribution: as :func:`classify_features`;
+            the demonstrations are the learner's own.
+        temperature, min_probability: the certificate's (above).
+        progress: a tqdm bar over the candidates.
+
+    Returns:
+        The classification of every feature; its ``required`` mask ``[l]`` is the
+        certified set and ``probability`` the certificate's probabilities.
+    """
+    return classify_features(solver=solver, reward=reward, cost_basis=cost_basis,
+                             demonstrations=demonstrations, temperature=temperature,
+                             initial_distribution=initial_distribution,
+                             min_probability=min_probability, final_state=False,
+                             progress=progress)
+
+
 # ------------------------------------------------------------------------ checks
+def check_indicator_basis(cost_basis, model: TabularGridModel) -> None:
+    """Raise the error :func:`classify_features` and :func:`certify_constraints` would
+    raise for ``cost_basis`` (another model's, negative, or positive everywhere), before
+    anything is trained."""
+    _features_of(cost_basis, model)
+
+
 def _features_of(cost_basis, model: TabularGridModel) -> tuple[FactoredFeatures, list[str]]:
     features, names = cost_features_of(cost_basis, model)
     if features.local.min() < 0 or (features.joint is not None and features.joint.min() < 0):

@@ -14,7 +14,7 @@ largest at the goal, so reaching the goal early and staying there earns the most
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -50,7 +50,9 @@ class GridWorldCMG(CheckedParallelEnv):
     ``horizon`` steps.
 
     Args:
-        layout: grid geometry, starts, goals and true constraints.
+        layout: grid geometry, starts (each episode's drawn from P0 at reset, with the
+            env's seeded stream, when ``layout.start_sets`` is given), goals and true
+            constraints.
         horizon: number of steps ``T`` before truncation.
         p_success: probability that an action succeeds, in ``(0, 1]``.
         constrained: True for the true CMG, False for the nominal game.
@@ -138,11 +140,21 @@ class GridWorldCMG(CheckedParallelEnv):
         self.agents = list(self.possible_agents)
         self.violated = dict.fromkeys(self.possible_agents, False)
         self.timestep = 0
-        self._cells = np.array(self.layout.start_cells, dtype=np.int64)
+        self._cells = self._draw_start()
         obs = {a: self._cells.copy() for a in self.agents}
         infos = {a: {"violation": False, "cell": int(self._cells[self._index[a]])}
                  for a in self.agents}
         return obs, infos
+
+    def _draw_start(self) -> np.ndarray:
+        """``[N]`` int64 start cells drawn from P0 with the env's stream: each expert with
+        several start cells (``layout.start_sets``) draws one uniformly, in expert order;
+        the others draw nothing, so fixed starts leave the stream as it was."""
+        cells = np.array(self.layout.start_cells, dtype=np.int64)
+        for i, options in enumerate(self.layout.start_cell_sets):
+            if len(options) > 1:
+                cells[i] = options[int(self._rng.integers(len(options)))]
+        return cells
 
     def _step(self, given: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """The step of :meth:`CheckedParallelEnv.step`; ``given`` holds an action in
@@ -233,12 +245,14 @@ def render_grid(
     cells: Sequence[int | None] | np.ndarray | None = None,
     heat: np.ndarray | None = None,
     constraint_cells: Iterable[int] | None = None,
+    cell_colours: Mapping[int, str] | None = None,
     title: str = "",
 ) -> np.ndarray:
     """Draw the grid world and return it as an ``H x W x 3`` uint8 image.
 
     Obstacles are dark (hatched over a heat map); each expert's start is a circle and
-    its goal a star in the expert's colour. Uses a private Agg canvas, never pyplot's
+    its goal a star in the expert's colour (with varied starts, small dots of that colour
+    mark the expert's other start cells). Uses a private Agg canvas, never pyplot's
     global state, so it is safe in headless and threaded code.
 
     Args:
@@ -247,6 +261,9 @@ def render_grid(
             may be None to skip that expert.
         heat: ``[S1]`` values (e.g. a visitation frequency) shown as a colour map.
         constraint_cells: cell indices drawn as red crosses (e.g. learned constraints).
+        cell_colours: cell index -> matplotlib colour; those cells are filled in it, under
+            the markers, crosses and grid lines (an obstacle given a colour is filled in
+            it instead of its dark grey, hatched over a heat map as usual).
         title: figure title, may span several lines.
 
     Returns:
@@ -263,13 +280,29 @@ def render_grid(
         im = ax.imshow(heat.reshape(G, G), cmap="viridis", origin="upper",
                        extent=(-0.5, G - 0.5, G - 0.5, -0.5), interpolation="nearest")
         ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
+    colours = {} if cell_colours is None else {int(c): v for c, v in cell_colours.items()}
+    bad = [c for c in colours if not 0 <= c < S1]
+    if bad:
+        raise ValueError(f"cell_colours {bad} lie outside 0..{S1 - 1}.")
+    for c, colour in colours.items():
+        # over a heat map (zorder 0), under the grid lines (1.5) and everything else
+        x, y = layout.xy(c)
+        ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, color=colour, lw=0, zorder=1))
     for x, y in layout.obstacles:
         # Over a heat map obstacles are hatched, not filled, so their values stay visible.
-        style = ({"fill": False, "hatch": "///", "ec": "0.15", "lw": 0} if heat is not None
-                 else {"color": "0.2"})
+        if heat is not None:
+            style = {"fill": False, "hatch": "///", "ec": "0.15", "lw": 0}
+        elif layout.cell((x, y)) in colours:
+            continue  # filled in its given colour above
+        else:
+            style = {"color": "0.2"}
         ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, zorder=2, **style))
     for i, ((sx, sy), (gx, gy)) in enumerate(zip(layout.starts, layout.goals, strict=True)):
         c = EXPERT_COLOURS[i % len(EXPERT_COLOURS)]
+        if layout.start_sets is not None and len(layout.start_sets[i]) > 1:
+            # varied starts: the cells P0 spreads the expert's start over, as small dots
+            xs, ys = zip(*layout.start_sets[i], strict=True)
+            ax.plot(xs, ys, ".", ms=5, color=c, alpha=0.6, zorder=3)
         ax.plot(sx, sy, "o", ms=14, mfc="none", mec=c, mew=2, zorder=3)
         ax.plot(gx, gy, "*", ms=15, color=c, zorder=3)
     if constraint_cells is not None:

@@ -32,7 +32,8 @@ from dicrl_torch.io import atomic_write
 CHECKPOINT_KEYS = ("seed", "n_demonstrations", "split", "expert_temperature", "env", "features",
                    "solver", "graph", "algo")
 CHECKPOINT_IGNORED = ("solver.progress", "algo.outer_iterations", "algo.threshold",
-                      "algo.prune_min_gain", "algo.run_c_icrl", "algo.run_d_icrl")
+                      "algo.prune_min_gain", "algo.constraint_rule", "algo.certificate",
+                      "algo.run_c_icrl", "algo.run_d_icrl")
 
 
 def training_config(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -45,10 +46,12 @@ def training_config(config: Mapping[str, Any]) -> dict[str, Any]:
     flat: dict[str, Any] = {}
 
     def walk(node, path):
+        if path in CHECKPOINT_IGNORED:  # a leaf or a whole node (algo.certificate)
+            return
         if isinstance(node, Mapping):
             for k, v in node.items():
                 walk(v, f"{path}.{k}" if path else str(k))
-        elif path not in CHECKPOINT_IGNORED:
+        else:
             flat[path] = node
 
     walk({k: config[k] for k in CHECKPOINT_KEYS if k in config}, "")

@@ -20,7 +20,11 @@ import torch
 from dicrl_torch.algos.dicrl import DICRL
 from dicrl_torch.algos.greedy import GreedyConstraintInference, GreedyResult
 from dicrl_torch.algos.identifiability import (
+    CERTIFICATE_MIN_PROBABILITY,
+    CERTIFICATE_TEMPERATURE,
     Identifiability,
+    certify_constraints,
+    check_indicator_basis,
     classify_features,
     fnr_required,
 )
@@ -31,6 +35,7 @@ from dicrl_torch.envs.grid import GridLayout, TabularGridModel
 from dicrl_torch.envs.gridworld_env import render_grid
 from dicrl_torch.figures import (
     constraint_cells,
+    identifiability_figure,
     metric_curves,
     obstacle_cells,
     side_by_side,
@@ -50,6 +55,9 @@ from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 # What GridTask.annotate adds to every learned row (null where it cannot be computed).
 ANNOTATIONS = ("FNR_required", "n_demonstrated", "n_required", "n_undetermined",
                "contradictions")
+# How a trained learner's η̄ and ω_c become its constraint set (docs/design.md §6):
+# "certificate" (ours, certify_constraints) or "threshold" (the paper's ω_c,j >= threshold).
+CONSTRAINT_RULES = ("certificate", "threshold")
 # The baselines' table rows (names as in the paper) and the greedy's demonstrator model.
 GRID_BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
 
@@ -104,7 +112,8 @@ class GridEvaluation:
 def load_shard_files(files: Sequence[str], split: Sequence[int], model: TabularGridModel,
                      read: Sequence[int] | None = None) -> list[Demonstrations | None]:
     """Learner ``v``'s demonstrations from ``files[v]``, checked against the learners' model
-    (cells, actions, experts, horizon, start cells) and ``split``, before any solve.
+    (cells, actions, experts, horizon, starts where P0 has mass) and ``split``, before any
+    solve.
 
     Args:
         read: the learners whose files are read (default: all); the others' entries are None.
@@ -129,17 +138,28 @@ def load_shard_files(files: Sequence[str], split: Sequence[int], model: TabularG
             raise ValueError(f"demonstrations file '{files[v]}' holds "
                              f"{shards[v].n_trajectories} trajectories, but split[{v}]="
                              f"{split[v]}; set split to the files' trajectory counts.")
-    start = np.asarray(model.start_state)
+    # [N, S1] bool: where P0 lets each expert start (its start set; one cell when fixed)
+    sets = model.layout.start_cell_sets
+    allowed = np.zeros((model.n_experts, model.n_cells), dtype=bool)
+    for i, cells in enumerate(sets):
+        allowed[i, list(cells)] = True
+    experts = np.arange(model.n_experts)
     for f, shard in ((files[v], shards[v]) for v in read):
-        # P0 puts every expert in its start cell: a trajectory starting elsewhere was
-        # recorded on another layout, and its likelihood would be 0.
-        wrong = np.nonzero((shard.states[:, 0] != start).any(1))[0]
+        # A trajectory must start where P0 has mass: one starting elsewhere was recorded
+        # on another layout (or start sets), and its likelihood would be 0.
+        wrong = np.nonzero(~allowed[experts, shard.states[:, 0]].all(1))[0]
         if wrong.size:
             k = int(wrong[0])
+            i = int(np.nonzero(~allowed[experts, shard.states[k, 0]])[0][0])
+            xy = model.layout.xy
+            where = (f"cell {sets[i][0]} {xy(sets[i][0])}" if len(sets[i]) == 1 else
+                     f"one of its {len(sets[i])} start cells {[xy(c) for c in sets[i]]}")
             raise ValueError(f"demonstrations file '{f}': trajectory {k} starts in cells "
-                             f"{shard.states[k, 0].tolist()}, but this layout's experts start "
-                             f"in {start.tolist()}; use demonstrations recorded on this "
-                             f"layout, or the env.layout they were recorded on.")
+                             f"{shard.states[k, 0].tolist()}, where P0 has no mass: expert "
+                             f"{i + 1} is there in {xy(int(shard.states[k, 0, i]))}, but this "
+                             f"layout starts it in {where}; use demonstrations recorded on "
+                             f"this layout, or the env.layout (and its start_regions) they "
+                             f"were recorded on.")
     return shards
 
 
@@ -169,9 +189,15 @@ class GridTask:
             learner process of a distributed run reads only its own.
         with_experts: solve the experts' policies (the reference rows and sampling need
             them; a learner process on its own file does not).
-        threshold: ``ω_c,j >= threshold`` marks a learned constraint.
+        constraint_rule: how a trained learner's row gets its constraint set:
+            ``"certificate"`` (:func:`~dicrl_torch.algos.identifiability.certify_constraints`
+            on the learner's η̄ and own shard) or ``"threshold"`` (the paper's rule).
+            The per-iteration curves always threshold ω_c (a certificate costs a solve
+            per unseen feature).
+        certificate_temperature, certificate_min_probability: the certificate's.
+        threshold: ``ω_c,j >= threshold`` marks a learned constraint (threshold rule).
         prune_min_gain: prune learned constraints the data does not need (nats per
-            trajectory), or None to keep them all.
+            trajectory), or None to keep them all (threshold rule).
         baselines: greedy rows to run (``"ME-greedy"``, ``"MCE-greedy"``).
         baseline_epsilon, baseline_max_constraints: the greedy's stopping rule.
     """
@@ -184,6 +210,9 @@ class GridTask:
                  expert_temperature: float = 0.0, split: Sequence[int], seed: int,
                  eval_episodes: int, shard_files: Sequence[str] | None = None,
                  read_shards: Sequence[int] | None = None, with_experts: bool = True,
+                 constraint_rule: str = "certificate",
+                 certificate_temperature: float = CERTIFICATE_TEMPERATURE,
+                 certificate_min_probability: float = CERTIFICATE_MIN_PROBABILITY,
                  threshold: float = 0.5, prune_min_gain: float | None = None,
                  baselines: Sequence[str] = (), baseline_epsilon: float | None = None,
                  baseline_max_constraints: int | None = None) -> None:
@@ -194,6 +223,23 @@ class GridTask:
         self.layout, self.model, self.solver = layout, model, solver
         self.reward_basis, self.cost_basis = reward_basis, cost_basis
         self.split = [int(m) for m in split]
+        if constraint_rule not in CONSTRAINT_RULES:
+            raise ValueError(f"constraint_rule must be one of {CONSTRAINT_RULES}, got "
+                             f"{constraint_rule!r}.")
+        if not (certificate_temperature >= 0.0 and 0.0 < certificate_min_probability <= 1.0):
+            raise ValueError(f"The certificate needs a temperature >= 0 and a "
+                             f"min_probability in (0, 1]; got {certificate_temperature!r} "
+                             f"and {certificate_min_probability!r}.")
+        if constraint_rule == "certificate":
+            try:
+                check_indicator_basis(cost_basis, model)
+            except ValueError as e:
+                raise ValueError(f"{e} The certificate needs such a basis; with this one keep "
+                                 f"the paper's rule: constraint_rule='threshold' "
+                                 f"(algo.constraint_rule=threshold).") from None
+        self.constraint_rule = constraint_rule
+        self.certificate = {"temperature": float(certificate_temperature),
+                            "min_probability": float(certificate_min_probability)}
         self.threshold, self.prune_min_gain = float(threshold), prune_min_gain
         self.expert_temperature = float(expert_temperature)
         self._identifiability: Identifiability | None = None
@@ -226,8 +272,12 @@ class GridTask:
 
     # ------------------------------------------------------------------ set-up
     def describe(self) -> str:
+        sets = self.layout.start_sets
+        starts = ("" if sets is None else
+                  "; varied starts over " + "×".join(str(len(c)) for c in sets) + " cells")
         return (f"{self.layout.n_experts} experts, {len(self.split)} learners holding "
-                f"{self.split} demonstrations; {self.model.n_pairs:,} state-action pairs")
+                f"{self.split} demonstrations; {self.model.n_pairs:,} state-action pairs"
+                f"{starts}")
 
     def announce(self, out: Path) -> None:
         """Save the demonstrations (sampled ones) and check the baselines build."""
@@ -260,20 +310,38 @@ class GridTask:
 
     # ------------------------------------------------------------------ table rows
     def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True) -> dict:
-        """The table row of local learner ``i`` (prunes its constraints first, if asked)."""
+        """The table row of local learner ``i``: its policy π_{η̄, ω_c} rolled out, and its
+        constraint set by ``constraint_rule`` (the threshold rule prunes ω_c first, if
+        asked, and the pruned ω_c is the policy's)."""
         ev = self.evaluation
+        names = list(self.cost_basis.names)
         raw = learned_constraints(trainer.state.cost_weights[i], self.threshold)
         before = ev.rates(raw)
         extra: dict[str, Any] = {"FPR_before_pruning": before["FPR"],
-                                 "FNR_before_pruning": before["FNR"]}
-        if self.prune_min_gain is not None:
-            # The pruned set explains the learner's data to within min_gain nats per
-            # trajectory.
-            cw, pruned = trainer.prune_constraints(i, self.threshold, self.prune_min_gain,
-                                                   progress=progress)
-            trainer.state.cost_weights[i] = cw
-            extra["pruned"] = len(pruned)
-        learned = learned_constraints(trainer.state.cost_weights[i], self.threshold)
+                                 "FNR_before_pruning": before["FNR"],
+                                 "constraint_rule": self.constraint_rule}
+        if self.constraint_rule == "certificate":
+            cert = certify_constraints(
+                solver=self.solver, cost_basis=self.cost_basis,
+                reward=self.reward_basis().weighted(trainer.state.eta_bar[i, :-1]),
+                demonstrations=trainer.shards[i],
+                initial_distribution=self.model.initial_distribution(),
+                progress=progress, **self.certificate)
+            learned = cert.required.numpy()
+            # No wall time in the row: rows must not depend on the machine or its load.
+            certified = torch.nonzero(cert.required).flatten().tolist()
+            extra.update(certificate_candidates=cert.n_solves,
+                         certificate_probability={names[j]: float(cert.probability[j])
+                                                  for j in certified})
+        else:
+            if self.prune_min_gain is not None:
+                # The pruned set explains the learner's data to within min_gain nats per
+                # trajectory.
+                cw, pruned = trainer.prune_constraints(i, self.threshold, self.prune_min_gain,
+                                                       progress=progress)
+                trainer.state.cost_weights[i] = cw
+                extra["pruned"] = len(pruned)
+            learned = learned_constraints(trainer.state.cost_weights[i], self.threshold)
         row = ev.rollout(trainer.policy(i).policy_at)
         row.update(extra)
         row.update(ev.rates(learned),
@@ -281,8 +349,7 @@ class GridTask:
                                                 ev.true_reward_weights),
                    SR=None, multiplier=float(trainer.state.eta_bar[i, -1]),
                    n_learned=int(learned.sum()))
-        row["constraints"] = constraint_names(self.cost_basis.names,
-                                              trainer.state.cost_weights[i], self.threshold)
+        row["constraints"] = [n for n, on in zip(names, learned.tolist(), strict=True) if on]
         return row
 
     def row_scalars(self, row: dict) -> list[tuple[str, float, int]]:
@@ -388,16 +455,21 @@ class GridTask:
         """What a trained method's rows depend on besides its state and the training
         config (which holds the rollouts' seed): a checkpointed row is reused only
         under the same settings."""
-        return {"threshold": self.threshold, "eval_episodes": self.evaluation.episodes,
-                "prune_min_gain": None if self.prune_min_gain is None
-                else float(self.prune_min_gain)}
+        settings = {"threshold": self.threshold, "eval_episodes": self.evaluation.episodes,
+                    "prune_min_gain": None if self.prune_min_gain is None
+                    else float(self.prune_min_gain)}
+        if self.constraint_rule != "threshold":  # the threshold rule's rows predate the key
+            settings.update(constraint_rule=self.constraint_rule, certificate=self.certificate)
+        return settings
 
     def figures(self, *, methods: dict, histories: dict, experiment: str,
                 eval_every: int) -> dict[str, np.ndarray]:
         """The paper's Fig. 2 for this run: 2a, the experts' visitation with the true
         constraints; 2b, the same with each bi-level learner's learned constraints (after
         pruning); 2c-2g, the metric curves over outer iterations, greedy baselines and
-        experts as reference lines.
+        experts as reference lines. Where :meth:`identifiability` applies, also
+        ``identifiability_classes``: the true constraints by class beside each bi-level
+        learner's learned set (:func:`~dicrl_torch.figures.identifiability_figure`).
 
         ``methods``: the table (rows by method), ``histories``: ``results.json``'s history.
         Bi-level methods are those with an outer-iteration history.
@@ -445,4 +517,13 @@ class GridTask:
                       f"learner(s) holding {self.split} of {sum(self.split)} demonstrations "
                       f"(CR, CVR: {self.evaluation.episodes} episodes every {eval_every} "
                       f"outer iterations)")
+        ident = self.identifiability()
+        if ident is not None:
+            labelled = {}
+            for name in bilevel:
+                rows = methods[name]["learners"]
+                labelled.update({f"{name} learner {v + 1}" if len(rows) > 1 else name: row
+                                 for v, row in enumerate(rows)})
+            images["identifiability_classes"] = identifiability_figure(
+                self.layout, ident.as_dict(), labelled, region_cells=regions)
         return images

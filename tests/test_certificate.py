@@ -1,0 +1,113 @@
+"""The learners' constraint certificate (``certify_constraints``, docs/design.md §6) on tiny
+layouts whose answers are derived by hand, and its use as the grid rows' constraint rule."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from test_identifiability import demos_of, names, one_expert, problem, thick_wall
+from tiny_train import compose_train, finished_run
+
+from dicrl_torch.algos.identifiability import certify_constraints, classify_features
+from dicrl_torch.envs.grid import GridLayout
+from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
+
+pytestmark = pytest.mark.filterwarnings("ignore:Sparse invariant checks:UserWarning")
+
+
+def test_the_certificate_with_the_true_reward_finds_the_hand_derived_required_cells():
+    """thick_wall (test_identifiability): (1,1) and (2,1) are shortcuts with probability 1;
+    (1,0) and (2,0) are never entered. The certificate knows only the demonstrations and a
+    reward: given the true one it certifies exactly the two shortcuts."""
+    model, solver, reward, demos = thick_wall()
+    basis = SharedIndicatorCostBasis(model)
+    cert = certify_constraints(solver=solver, reward=reward, cost_basis=basis,
+                               demonstrations=demos)
+    assert names(cert, cert.required) == {"cell(1,1)", "cell(2,1)"}
+    assert cert.temperature == 0.0 and cert.min_probability == pytest.approx(1e-3)
+
+
+def test_the_certificate_is_invariant_to_the_reward_scale():
+    """At temperature 0 the policy is the hard max with uniform ties: scaling the learned
+    reward (which optimal demonstrations let grow without bound) changes nothing."""
+    model, solver, _, demos = thick_wall()
+    basis = SharedIndicatorCostBasis(model)
+    rb = GoalClosenessRewardBasis(model)
+    results = [certify_constraints(solver=solver, reward=rb().weighted(rb.true_weights() * c),
+                                   cost_basis=basis, demonstrations=demos)
+               for c in (1.0, 7.5)]
+    assert torch.equal(results[0].required, results[1].required)
+    both = torch.isfinite(results[0].probability)
+    assert torch.allclose(results[0].probability[both], results[1].probability[both])
+
+
+def last_move_layout():
+    """3x3, one expert from (0,0) to (2,0), no obstacle, T = 3, deterministic moves::
+
+        S . G     demonstrations: E E stay, and S NE E (which arrives only at s_T)
+        . . .     demonstrated actions: E, stay, S, NE; cells (0,0) (1,0) (2,0) (0,1)
+        . . .
+
+    With every other unseen feature forbidden and (2,1) open, the expert at the goal at
+    the last decision (t = 2: nothing after it is scored) ties E (off the grid), stay, NE
+    (off the grid) and S, which lands on (2,1) at s_T: probability 1/4, counted by the
+    evaluation's classification (the true CMG scores s_T), never by the certificate (the
+    learners' likelihood scores t < T only)."""
+    layout = GridLayout(size=3, starts=((0, 0),), goals=((2, 0),))
+    model, solver, reward = problem(layout, horizon=3)
+    demos = demos_of(model, one_expert("E E stay"), one_expert("S NE E"))
+    return model, solver, reward, demos
+
+
+def test_a_feature_reached_only_at_the_final_state_is_not_certified():
+    model, solver, reward, demos = last_move_layout()
+    basis = SharedIndicatorCostBasis(model)
+    j = basis.names.index("cell(2,1)")
+    evaluation = classify_features(solver=solver, reward=reward, cost_basis=basis,
+                                   demonstrations=demos)
+    assert float(evaluation.probability[j]) == pytest.approx(0.25, abs=1e-12)
+    assert "cell(2,1)" in names(evaluation, evaluation.required)
+    cert = certify_constraints(solver=solver, reward=reward, cost_basis=basis,
+                               demonstrations=demos)
+    assert float(cert.probability[j]) == 0.0
+    assert "cell(2,1)" not in names(cert, cert.required)
+
+
+# ------------------------------------------------------------------ the grid rows' rule
+@pytest.fixture(scope="module")
+def rule_runs(tmp_path_factory):
+    return {rule: finished_run(tmp_path_factory, rule, f"algo.constraint_rule={rule}")
+            for rule in ("certificate", "threshold")}
+
+
+def learner_rows(run_dir):
+    res = json.loads((run_dir / "results.json").read_text())
+    return [row for m in ("D-ICRL", "C-ICRL") for row in res["methods"][m]["learners"]]
+
+
+def test_certificate_rows_list_the_certified_features(rule_runs):
+    for row in learner_rows(rule_runs["certificate"]):
+        assert row["constraint_rule"] == "certificate"
+        assert sorted(row["constraints"]) == sorted(row["certificate_probability"])
+        assert all(p >= 1e-3 for p in row["certificate_probability"].values())
+        assert row["certificate_candidates"] > 0 and row["n_learned"] == len(row["constraints"])
+        assert "pruned" not in row  # pruning belongs to the threshold rule
+
+
+def test_the_paper_threshold_rule_stays_selectable(rule_runs):
+    cert, thresh = (learner_rows(rule_runs[r]) for r in ("certificate", "threshold"))
+    for a, b in zip(cert, thresh, strict=True):
+        assert b["constraint_rule"] == "threshold" and "certificate_probability" not in b
+        # the training is the same: the paper's rule's rates before pruning agree
+        assert (a["FPR_before_pruning"], a["FNR_before_pruning"]) == \
+            (b["FPR_before_pruning"], b["FNR_before_pruning"])
+
+
+def test_the_drones_refuse_the_certificate():
+    from config_checks import ConfigError, check_config
+
+    cfg = compose_train("experiment=table2_quick", "algo.constraint_rule=certificate")
+    with pytest.raises(ConfigError, match="constraint_rule=threshold"):
+        check_config(cfg)
