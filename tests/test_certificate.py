@@ -53,26 +53,30 @@ def last_move_layout():
     With every other unseen feature forbidden and (2,1) open, the expert at the goal at
     the last decision (t = 2: nothing after it is scored) ties E (off the grid), stay, NE
     (off the grid) and S, which lands on (2,1) at s_T: probability 1/4, counted by the
-    evaluation's classification (the true CMG scores s_T), never by the certificate (the
-    learners' likelihood scores t < T only)."""
+    evaluation's classification (the true CMG scores s_T), never by the certificate (a last
+    move is chance, not preference)."""
     layout = GridLayout(size=3, starts=((0, 0),), goals=((2, 0),))
     model, solver, reward = problem(layout, horizon=3)
     demos = demos_of(model, one_expert("E E stay"), one_expert("S NE E"))
     return model, solver, reward, demos
 
 
-def test_a_feature_reached_only_at_the_final_state_is_not_certified():
+@pytest.mark.parametrize("feature", ["cell(2,1)", "action W"])
+def test_a_feature_only_the_last_move_accrues_is_not_certified(feature):
+    """(2,1) is entered only by the last move (S, landing at s_T); W likewise is taken only
+    at the last decision (from the goal to the demonstrated (1,0)), tied with E, stay and
+    NE: probability 1/4 each for the evaluation, none for the certificate."""
     model, solver, reward, demos = last_move_layout()
     basis = SharedIndicatorCostBasis(model)
-    j = basis.names.index("cell(2,1)")
+    j = basis.names.index(feature)
     evaluation = classify_features(solver=solver, reward=reward, cost_basis=basis,
                                    demonstrations=demos)
     assert float(evaluation.probability[j]) == pytest.approx(0.25, abs=1e-12)
-    assert "cell(2,1)" in names(evaluation, evaluation.required)
+    assert feature in names(evaluation, evaluation.required)
     cert = certify_constraints(solver=solver, reward=reward, cost_basis=basis,
                                demonstrations=demos)
     assert float(cert.probability[j]) == 0.0
-    assert "cell(2,1)" not in names(cert, cert.required)
+    assert feature not in names(cert, cert.required)
 
 
 # ------------------------------------------------------------------ the grid rows' rule

@@ -276,12 +276,17 @@ def joint_initial_distribution(model: TabularGridModel, p0=None) -> torch.Tensor
 # ------------------------------------------------------------------------ probability
 class _Hits:
     """Where a set of features is positive: per expert ``[N, S1, A1]``, on joint states
-    ``[S]`` (joint part), and on final states ``[S]`` (its state features)."""
+    ``[S]`` (joint part), and on final states ``[S]`` (its state features); and what
+    counts at the last decision ``t = T-1`` (``last_local``, ``last_joint``).
+
+    Without ``last_move`` the last move counts for nothing: neither the action taken at
+    ``t = T-1`` nor the state ``s_T`` it leads to accrues (the state ``s_{T-1}``, reached by
+    a scored move, still does)."""
 
     def __init__(self, features: FactoredFeatures, target: torch.Tensor,
                  model: TabularGridModel, device: torch.device,
-                 final_state: bool = True) -> None:
-        N, S1 = model.n_experts, model.n_cells
+                 last_move: bool = True) -> None:
+        N, S1, A1 = model.n_experts, model.n_cells, model.n_actions
         self.local = (features.local[..., target] > 0).any(-1).to(device)  # [N, S1, A1]
         self.joint = None
         final = torch.zeros(model.state_shape, dtype=torch.bool)
@@ -292,20 +297,26 @@ class _Hits:
             shape[i] = S1
             final |= cell[i].reshape(shape)
         final = final.reshape(-1)
+        joint_state = None
         if features.joint is not None:
             cols = target[features.joint_columns]
             if cols.any():
                 self.joint = (features.joint[:, cols] > 0).any(-1).to(device)  # [S]
             cols = state[features.joint_columns]
             if cols.any():
-                final |= (features.joint[:, cols] > 0).any(-1)
-        # The learner's model scores (s_t, a_t) for t < T only: without final_state,
-        # landing on a feature at s_T accrues nothing.
-        self.final = (final if final_state else torch.zeros_like(final)).to(device)
+                joint_state = (features.joint[:, cols] > 0).any(-1)
+                final |= joint_state
+        if last_move:
+            self.final = final.to(device)
+            self.last_local, self.last_joint = self.local, self.joint
+        else:
+            self.final = torch.zeros_like(final).to(device)
+            self.last_local = cell.unsqueeze(-1).expand(N, S1, A1).to(device)
+            self.last_joint = None if joint_state is None else joint_state.to(device)
 
 
 def accrual_probability(solution: SoftBellmanSolution, features: FactoredFeatures | FeatureBasis,
-                        target, initial_distribution=None, final_state: bool = True) -> float:
+                        target, initial_distribution=None, last_move: bool = True) -> float:
     """``P(a trajectory accrues some feature of target)`` under the solution's policy.
 
     A trajectory accrues ``φ_j`` when ``φ_j(s_t, a_t) > 0`` at some ``t < T`` or, for a
@@ -320,8 +331,9 @@ def accrual_probability(solution: SoftBellmanSolution, features: FactoredFeature
             survival, or an int (one feature).
         initial_distribution: P0 (see :func:`joint_initial_distribution`); default
             the model's.
-        final_state: whether a state feature positive at ``s_T`` is accrued (the true
-            CMG's semantics; False: only ``t < T`` counts, the learners' model's).
+        last_move: whether the last move accrues: the action at ``t = T-1`` and a state
+            feature positive at ``s_T`` (the true CMG's semantics). False: neither (the
+            certificate's: optimal experts are indifferent among safe last moves).
     """
     features = features() if isinstance(features, FeatureBasis) else features
     if isinstance(target, int):
@@ -331,7 +343,7 @@ def accrual_probability(solution: SoftBellmanSolution, features: FactoredFeature
     target = _as_mask(target, features.dim, "target")
     solver = solution.solver
     model = solver.model
-    hits = _Hits(features, target, model, solver.device, final_state)
+    hits = _Hits(features, target, model, solver.device, last_move)
     d = joint_initial_distribution(model, initial_distribution).reshape(-1).to(solver.device)
     return _killed_forward(solution, hits, d)
 
@@ -365,11 +377,13 @@ def _killed_forward(solution: SoftBellmanSolution, hits: _Hits, d: torch.Tensor)
             mass = d[flat]
             pi = solution.policy_at(t, cells).to(device, torch.float64)  # [B, A1^N]
             rho = (mass.unsqueeze(1) * pi).reshape([B] + [A1] * N)
+            local, joint = (hits.last_local, hits.last_joint) if t == T - 1 else \
+                (hits.local, hits.joint)
             acc = torch.zeros([B] + [1] * N, dtype=torch.bool, device=device)
             for i in range(N):
-                acc = acc | axis(hits.local[i, cells[:, i]], i)
-            if hits.joint is not None:
-                acc = acc | hits.joint[flat].reshape([B] + [1] * N)
+                acc = acc | axis(local[i, cells[:, i]], i)
+            if joint is not None:
+                acc = acc | joint[flat].reshape([B] + [1] * N)
             acc = acc.expand_as(rho)
             removed += rho[acc].sum()
             rho = rho.masked_fill(acc, 0.0)
@@ -394,7 +408,7 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
                       demonstrations: Demonstrations | Sequence[Demonstrations],
                       temperature: float = 0.0, initial_distribution=None,
                       only=None, min_probability: float = MIN_PROBABILITY,
-                      final_state: bool = True, progress: bool = False) -> Identifiability:
+                      last_move: bool = True, progress: bool = False) -> Identifiability:
     """Classify cost features as demonstrated, required or undetermined (module
     docstring).
 
@@ -416,8 +430,8 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
             still every undemonstrated feature. None: all.
         min_probability: the per-trajectory probability from which an undemonstrated
             feature is required.
-        final_state: whether reaching a state feature at ``s_T`` accrues it (see
-            :func:`accrual_probability`); "demonstrated" always counts ``s_T``.
+        last_move: whether the last move (the action at ``t = T-1``, the state ``s_T``)
+            accrues (see :func:`accrual_probability`); "demonstrated" always counts it.
         progress: a tqdm bar over the candidates.
 
     Raises:
@@ -476,7 +490,7 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
         target = torch.zeros(features.dim, dtype=torch.bool)
         target[j] = True
         probability[j] = _killed_forward(
-            sol, _Hits(features, target, model, solver.device, final_state), d0)
+            sol, _Hits(features, target, model, solver.device, last_move), d0)
     seconds = time.perf_counter() - t0
     required = unseen & scope & (probability >= min_probability)
     return Identifiability(
@@ -515,8 +529,11 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
     - ``min_probability`` 1e-3, ten times below the evaluation's 0.01: the learned reward
       is an estimate, and a required feature near the evaluation's threshold (a slip-only
       shortcut) can fall below it under the estimate (measured in docs/experiments.md).
-    - ``final_state`` False: the learners' likelihood scores ``(s_t, a_t)`` for ``t < T``
-      only, so the last move (unscored: any safe move is optimal) certifies nothing.
+    - ``last_move`` False: at the last decision nothing more is scored, so optimal experts
+      pick any safe move, uniformly; whether a shard of m trajectories shows a given last
+      move is chance ((1 - 1/k)^m), not preference. Neither the action at ``t = T-1`` nor
+      the state ``s_T`` accrues (a learner with 10 or 20 trajectories would otherwise
+      certify the moves and cells beside its goals that it happened never to see).
 
     Args:
         solver: the factored solver of the learners' nominal model.
@@ -533,7 +550,7 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
     return classify_features(solver=solver, reward=reward, cost_basis=cost_basis,
                              demonstrations=demonstrations, temperature=temperature,
                              initial_distribution=initial_distribution,
-                             min_probability=min_probability, final_state=False,
+                             min_probability=min_probability, last_move=False,
                              progress=progress)
 
 
