@@ -40,7 +40,11 @@ from numpy.typing import ArrayLike
 from dicrl_torch.demos.npz import (
     atomic_savez,
     check_expected,
+    check_float_dtype,
+    frozen,
+    is_int,
     open_archive,
+    pad_episodes,
     read_field,
 )
 from dicrl_torch.demos.trajectories import TrajectoryArrays
@@ -67,17 +71,6 @@ and the env itself (a planner may read its true state) to a dict of one action p
 agent."""
 
 _FIX = "save_continuous_demonstrations"
-
-
-def _is_int(x: object) -> bool:
-    return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
-
-
-def _check_float(a: np.ndarray, field: str, source: str) -> None:
-    if not np.issubdtype(a.dtype, np.floating):
-        raise ValueError(
-            f"{source}: field '{field}' has dtype {a.dtype}, but it must be a float array; "
-            f"store it as `{field}.astype(np.float64)`.")
 
 
 def _valid_steps(lengths: np.ndarray, steps: int) -> np.ndarray:
@@ -123,8 +116,8 @@ def validate_continuous_arrays(
             expected and the fix.
     """
     states, actions, lengths = np.asarray(states), np.asarray(actions), np.asarray(lengths)
-    _check_float(states, "states", source)
-    _check_float(actions, "actions", source)
+    check_float_dtype(states, "states", source)
+    check_float_dtype(actions, "actions", source)
     if states.ndim != 4:
         raise ValueError(
             f"{source}: field 'states' must have 4 dims [m, T+1, N, d_s] (episodes, times, "
@@ -190,11 +183,6 @@ def validate_continuous_arrays(
                 f"store `seeds.astype(np.int64)` or leave it out.")
 
 
-def _frozen(a: np.ndarray) -> np.ndarray:
-    a.flags.writeable = False
-    return a
-
-
 @dataclass(frozen=True, eq=False, repr=False)
 class ContinuousDemonstrations(TrajectoryArrays):
     """Episodes of ``N`` agents in a continuous environment, validated on construction (a
@@ -227,23 +215,23 @@ class ContinuousDemonstrations(TrajectoryArrays):
         validate_continuous_arrays(self.states, self.actions, self.lengths,
                                    self.agent_names, self.seeds,
                                    source="ContinuousDemonstrations")
-        states = np.array(self.states, dtype=np.float64, copy=True)
-        actions = np.array(self.actions, dtype=np.float64, copy=True)
-        lengths = np.array(self.lengths, dtype=np.int64, copy=True)
+        lengths = frozen(self.lengths, np.int64)
         # Canonical padding: downstream code may evaluate features on the whole padded
-        # array (masking afterwards), so it must never meet a NaN there.
-        for k, n in enumerate(lengths.tolist()):
-            states[k, n + 1:] = states[k, n]
-            actions[k, n:] = 0.0
-        object.__setattr__(self, "states", _frozen(states))
-        object.__setattr__(self, "actions", _frozen(actions))
-        object.__setattr__(self, "lengths", _frozen(lengths))
+        # array (masking afterwards), so it must never meet a NaN there. Past its end an
+        # episode repeats its last state (time min(t, L)) and takes zero actions.
+        states, actions = np.asarray(self.states), np.asarray(self.actions)
+        last = np.minimum(np.arange(states.shape[1]), lengths[:, None])  # [m, T+1]
+        states = np.take_along_axis(states, last[:, :, None, None], axis=1)
+        taken = _valid_steps(lengths, actions.shape[1])[:, :, None, None]
+        actions = np.where(taken, actions, 0.0)
+        object.__setattr__(self, "states", frozen(states, np.float64))
+        object.__setattr__(self, "actions", frozen(actions, np.float64))
+        object.__setattr__(self, "lengths", lengths)
         if self.agent_names is not None:
             object.__setattr__(self, "agent_names",
                                tuple(str(s) for s in np.asarray(self.agent_names).tolist()))
         if self.seeds is not None:
-            object.__setattr__(self, "seeds",
-                               _frozen(np.array(self.seeds, dtype=np.int64, copy=True)))
+            object.__setattr__(self, "seeds", frozen(self.seeds, np.int64))
 
     @property
     def n_episodes(self) -> int:
@@ -454,11 +442,11 @@ def record_demonstrations(
             different widths per agent, or an ``env.state()`` of another shape.
         TypeError: a policy that is not callable, non-numeric observations or actions.
     """
-    if not _is_int(n_episodes) or n_episodes < 1:
+    if not is_int(n_episodes) or n_episodes < 1:
         raise ValueError(f"n_episodes must be a positive int, got {n_episodes!r}.")
-    if not _is_int(seed) or seed < 0:
+    if not is_int(seed) or seed < 0:
         raise ValueError(f"seed must be a non-negative int, got {seed!r}; pass e.g. seed=0.")
-    if max_steps is not None and (not _is_int(max_steps) or max_steps < 1):
+    if max_steps is not None and (not is_int(max_steps) or max_steps < 1):
         raise ValueError(f"max_steps must be a positive int or None, got {max_steps!r}.")
     if not callable(policy):
         raise TypeError(f"policy must be callable as policy(observations, env) -> actions, "
@@ -511,14 +499,6 @@ def _pad(episodes: Sequence[tuple[np.ndarray, np.ndarray]], agents: list[str],
         raise ValueError(f"record_demonstrations: the episodes' state and action shapes "
                          f"differ ({sorted(shapes)}); one set needs one [N, d_s] and "
                          f"[N, d_a].")
-    lengths = np.array([len(a) for _, a in episodes], dtype=np.int64)
-    (s_shape, a_shape), = shapes
-    horizon = int(lengths.max())
-    S = np.empty((len(episodes), horizon + 1, *s_shape))
-    A = np.zeros((len(episodes), horizon, *a_shape))
-    for k, (s, a) in enumerate(episodes):
-        S[k, :len(s)] = s
-        S[k, len(s):] = s[-1]
-        A[k, :len(a)] = a
+    S, A, lengths = pad_episodes(episodes)
     return ContinuousDemonstrations(states=S, actions=A, lengths=lengths,
                                     agent_names=tuple(agents), seeds=seeds.astype(np.int64))

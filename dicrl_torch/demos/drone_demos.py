@@ -38,7 +38,11 @@ from numpy.typing import ArrayLike
 from dicrl_torch.demos.npz import (
     atomic_savez,
     check_expected,
+    check_float_dtype,
+    frozen,
+    is_int,
     open_archive,
+    pad_episodes,
     read_field,
     read_scalar,
 )
@@ -109,16 +113,8 @@ _WAIT_STEP_S = 0.25
 
 
 # ====================================================================== data + schema
-def _is_int(x: object) -> bool:
-    return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
-
-
 def _check_float_array(a: np.ndarray, field: str, source: str) -> None:
-    if not np.issubdtype(a.dtype, np.floating):
-        raise ValueError(
-            f"{source}: field '{field}' has dtype {a.dtype}, but it must be a float "
-            f"array; store it as `{field}.astype(np.float64)`."
-        )
+    check_float_dtype(a, field, source)
     if not np.all(np.isfinite(a)):
         idx = tuple(int(v) for v in np.argwhere(~np.isfinite(a))[0])
         raise ValueError(
@@ -210,12 +206,6 @@ def validate_drone_arrays(
             )
 
 
-def _frozen(a: ArrayLike, dtype: type) -> np.ndarray:
-    out = np.array(a, dtype=dtype, copy=True)
-    out.flags.writeable = False
-    return out
-
-
 @dataclass(frozen=True, eq=False, repr=False)
 class DroneDemonstrations(TrajectoryArrays):
     """Demonstrated pairs of drone trajectories, validated on construction (a
@@ -244,12 +234,12 @@ class DroneDemonstrations(TrajectoryArrays):
     def __post_init__(self) -> None:
         validate_drone_arrays(self.states, self.actions, self.lengths, self.dt, self.seeds,
                               source="DroneDemonstrations")
-        object.__setattr__(self, "states", _frozen(self.states, np.float64))
-        object.__setattr__(self, "actions", _frozen(self.actions, np.float64))
-        object.__setattr__(self, "lengths", _frozen(self.lengths, np.int64))
+        object.__setattr__(self, "states", frozen(self.states, np.float64))
+        object.__setattr__(self, "actions", frozen(self.actions, np.float64))
+        object.__setattr__(self, "lengths", frozen(self.lengths, np.int64))
         object.__setattr__(self, "dt", float(self.dt))
         if self.seeds is not None:
-            object.__setattr__(self, "seeds", _frozen(self.seeds, np.int64))
+            object.__setattr__(self, "seeds", frozen(self.seeds, np.int64))
 
     @property
     def n_pairs(self) -> int:
@@ -504,7 +494,7 @@ def make_drone_demonstrations(
     Raises:
         RuntimeError: fewer than ``n_pairs`` successful pairs in ``max_attempts``.
     """
-    if not _is_int(n_pairs) or n_pairs < 1:
+    if not is_int(n_pairs) or n_pairs < 1:
         raise ValueError(f"n_pairs must be a positive int, got {n_pairs!r}.")
     if not isinstance(rng, np.random.Generator):
         raise TypeError(
@@ -531,14 +521,7 @@ def make_drone_demonstrations(
         states, actions, ok = fly_pair(plan, env, seed)
         if ok:
             pairs.append((states, actions, seed))
-    lengths = np.array([len(a) for _, a, _ in pairs], dtype=np.int64)
-    horizon = int(lengths.max())
-    S = np.empty((n_pairs, horizon + 1, N_DRONES, 4))
-    A = np.zeros((n_pairs, horizon, N_DRONES, 2))
-    for k, (s, a, _) in enumerate(pairs):
-        S[k, : len(s)] = s
-        S[k, len(s):] = s[-1]
-        A[k, : len(a)] = a
+    S, A, lengths = pad_episodes([(s, a) for s, a, _ in pairs])
     return DroneDemonstrations(states=S, actions=A, lengths=lengths, dt=env.dynamics.dt,
                                seeds=np.array([sd for _, _, sd in pairs], dtype=np.int64))
 

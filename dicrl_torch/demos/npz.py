@@ -1,4 +1,5 @@
-"""Safe ``.npz`` archives for demonstrations (grid and drone alike).
+"""Safe ``.npz`` archives for demonstrations (grid, drone and continuous alike), and the
+small array helpers their schemas share.
 
 Writes are atomic (a temporary file moved into place). Reads never unpickle
 (``allow_pickle=False``), check the field names against a schema and turn every
@@ -16,11 +17,58 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike, DTypeLike
 
 from dicrl_torch.io import atomic_write
 
 # What np.load / zipfile / zlib raise on a damaged archive or member.
 READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, KeyError)
+
+
+def is_int(x: object) -> bool:
+    """Whether ``x`` is a Python or numpy integer (bools are not)."""
+    return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
+
+
+def frozen(array: ArrayLike, dtype: DTypeLike) -> np.ndarray:
+    """A read-only copy of ``array`` as ``dtype`` (the fields of immutable
+    demonstrations)."""
+    out = np.array(array, dtype=dtype, copy=True)
+    out.flags.writeable = False
+    return out
+
+
+def check_float_dtype(a: np.ndarray, field: str, source: str) -> None:
+    """Refuse a non-float ``a``, naming ``source``, the ``field`` and the fix."""
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(
+            f"{source}: field '{field}' has dtype {a.dtype}, but it must be a float array; "
+            f"store it as `{field}.astype(np.float64)`.")
+
+
+def pad_episodes(episodes: Sequence[tuple[np.ndarray, np.ndarray]]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stack episodes of different lengths into padded arrays.
+
+    Args:
+        episodes: per episode ``states [L+1, ...]`` and ``actions [L, ...]`` (one shape
+            per step across all of them).
+
+    Returns:
+        float64 ``states [m, T+1, ...]`` (each episode's last state repeated after its
+        end), float64 ``actions [m, T, ...]`` (0 after the end) and int64 ``lengths
+        [m]`` (the ``L``), with ``T`` the longest ``L``.
+    """
+    lengths = np.array([len(a) for _, a in episodes], dtype=np.int64)
+    horizon = int(lengths.max())
+    s0, a0 = episodes[0]
+    states = np.empty((len(episodes), horizon + 1, *s0.shape[1:]))
+    actions = np.zeros((len(episodes), horizon, *a0.shape[1:]))
+    for k, (s, a) in enumerate(episodes):
+        states[k, :len(s)] = s
+        states[k, len(s):] = s[-1]
+        actions[k, :len(a)] = a
+    return states, actions, lengths
 
 
 def atomic_savez(path: str | os.PathLike[str], fields: Mapping[str, np.ndarray]) -> Path:

@@ -20,6 +20,8 @@ from numpy.typing import ArrayLike
 from dicrl_torch.demos.npz import (
     atomic_savez,
     check_expected,
+    frozen,
+    is_int,
     open_archive,
     read_field,
     read_scalar,
@@ -30,10 +32,6 @@ FORMAT_VERSION = 1
 ARRAY_FIELDS: tuple[str, ...] = ("states", "actions")
 SCALAR_FIELDS: tuple[str, ...] = ("n_cells", "n_actions", "format_version")
 FIELDS: tuple[str, ...] = ARRAY_FIELDS + SCALAR_FIELDS
-
-
-def _is_int(x: object) -> bool:
-    return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
 
 
 def _check_integer_array(a: np.ndarray, field: str, source: str) -> None:
@@ -80,7 +78,7 @@ def validate_arrays(
         ValueError: naming ``source``, the offending field and the fix.
     """
     for name, value in (("n_cells", n_cells), ("n_actions", n_actions)):
-        if not _is_int(value) or value < 1:
+        if not is_int(value) or value < 1:
             raise ValueError(f"{source}: field '{name}' must be a positive int, got {value!r}.")
     states, actions = np.asarray(states), np.asarray(actions)
     _check_integer_array(states, "states", source)
@@ -141,9 +139,7 @@ class Demonstrations(TrajectoryArrays):
         )
         for name in ARRAY_FIELDS:
             # Range already checked, so the cast to int64 is lossless.
-            a = np.array(getattr(self, name), dtype=np.int64, copy=True)
-            a.flags.writeable = False
-            object.__setattr__(self, name, a)
+            object.__setattr__(self, name, frozen(getattr(self, name), np.int64))
         object.__setattr__(self, "n_cells", int(self.n_cells))
         object.__setattr__(self, "n_actions", int(self.n_actions))
 

@@ -24,11 +24,8 @@ Reward bases:
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import torch
-from torch import nn
 
 from dicrl_torch.envs.drones import (
     CELL_SIZE,
@@ -42,44 +39,26 @@ from dicrl_torch.envs.drones import (
     in_own_door,
     obstacle_cell_mask,
 )
-from dicrl_torch.features.base import EnvKind
+from dicrl_torch.features.continuous import ContinuousFeatureBasis, _positive, _positive_int
 
 
-def _positive(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating) \
-            or not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}.")
-    return float(value)
+class DroneFeatureBasis(ContinuousFeatureBasis):
+    """Base class of the drone bases: a
+    :class:`~dicrl_torch.features.continuous.ContinuousFeatureBasis` (kind
+    ``"continuous"``) fixed to the arena's joint states ``[..., 2, 4]`` and commands
+    ``[..., 2, 2]``, whose input and output checks it uses.
 
-
-def _positive_int(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-        raise ValueError(f"{name} must be a positive int, got {value!r}.")
-    return int(value)
-
-
-class DroneFeatureBasis(nn.Module):
-    """Base class of the drone bases (a :class:`~dicrl_torch.features.base.Basis` of kind
-    ``"continuous"``).
-
-    Subclasses set ``self.names`` (one label per feature) and ``self.max_value``,
-    register their constants as (non-persistent) buffers and implement
-    :meth:`compute`. ``forward`` checks the input and that the output lies in
-    ``[0, max_value]``.
+    Subclasses set ``self.names`` (one label per feature, ``drone<i>/...`` for drone
+    ``i``'s own) and ``self.max_value``, register their constants as (non-persistent)
+    buffers and implement :meth:`compute`.
     """
 
-    max_value: float = 1.0
-    names: list[str]
-    # The kind of environment the basis serves: "continuous", the drone arena's states.
-    # experiments/config_checks.py refuses a basis whose kind is not the configured env's.
-    env_kind: EnvKind = "continuous"
-
-    @property
-    def dim(self) -> int:
-        """Number of features ``l``."""
-        return len(self.names)
+    n_agents: int = N_DRONES
+    state_dim: int = 4
+    action_dim: int = 2
 
     def compute(self, states: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        """``[..., 2, 4]`` checked joint states to ``[..., l]`` features."""
         raise NotImplementedError
 
     def drone_shares(self) -> torch.Tensor:
@@ -97,72 +76,6 @@ class DroneFeatureBasis(nn.Module):
                 shares[j] = 0.0
                 shares[j, int(owner)] = 1.0
         return shares
-
-    def forward(self, states: Any, actions: Any = None) -> torch.Tensor:
-        """Features of joint states.
-
-        Args:
-            states: ``[..., 2, 4]`` float positions and velocities (numpy or torch).
-            actions: optional ``[..., 2, 2]`` commands; checked, unused (state features).
-
-        Returns:
-            ``[..., l]`` features in the dtype of ``states`` (float64 for numpy input).
-
-        Raises:
-            ValueError: malformed input, or features outside ``[0, max_value]``.
-        """
-        states = self._check(states, "states", 4)
-        if actions is not None:
-            actions = self._check(actions, "actions", 2)
-            if actions.shape[:-1] != states.shape[:-1]:
-                raise ValueError(
-                    f"{type(self).__name__}: actions of shape {tuple(actions.shape)} do not "
-                    f"match states of shape {tuple(states.shape)}; give [..., {N_DRONES}, 2]."
-                )
-        phi = self.compute(states)
-        self._validate(phi, states.shape[:-2])
-        return phi
-
-    def _check(self, x: Any, name: str, width: int) -> torch.Tensor:
-        if not isinstance(x, torch.Tensor):
-            a = np.asarray(x)
-            if not np.issubdtype(a.dtype, np.floating):
-                raise ValueError(
-                    f"{type(self).__name__}: {name} must be a float array, got dtype "
-                    f"{a.dtype}; convert with .astype(np.float64)."
-                )
-            # torch cannot wrap a read-only array (e.g. DroneDemonstrations fields): copy.
-            x = torch.from_numpy(a if a.flags.writeable else a.copy())
-        if not x.is_floating_point():
-            raise ValueError(
-                f"{type(self).__name__}: {name} must be a float tensor, got dtype {x.dtype}; "
-                f"convert with .double()."
-            )
-        if x.ndim < 2 or tuple(x.shape[-2:]) != (N_DRONES, width):
-            raise ValueError(
-                f"{type(self).__name__}: {name} must have shape [..., {N_DRONES}, {width}], "
-                f"got {tuple(x.shape)}."
-            )
-        if not torch.isfinite(x).all():
-            raise ValueError(f"{type(self).__name__}: {name} contain NaN or inf values.")
-        buf = next(self.buffers(), None)
-        return x if buf is None else x.to(buf.device)
-
-    def _validate(self, phi: torch.Tensor, batch: torch.Size) -> None:
-        if tuple(phi.shape) != (*batch, self.dim):
-            raise ValueError(
-                f"{type(self).__name__} produced features of shape {tuple(phi.shape)}, "
-                f"expected {(*batch, self.dim)}."
-            )
-        if phi.numel() == 0:
-            return
-        lo, hi = float(phi.min()), float(phi.max())
-        if not (np.isfinite(lo) and np.isfinite(hi)) or lo < 0 or hi > self.max_value + 1e-9:
-            raise ValueError(
-                f"{type(self).__name__} features leave [0, {self.max_value}] (min {lo:.3g}, "
-                f"max {hi:.3g}); the paper assumes bounded non-negative features "
-                f"(φ ∈ [0, d]^l): rescale the basis or raise its max_value."
-            )
 
 
 def _proximity_indicator(pos: torch.Tensor, radius: float) -> torch.Tensor:
