@@ -5,7 +5,8 @@
 
 Reads every ``results.json`` below the given directory (one per run) and prints, for
 each method row of the table (``D-ICRL 1`` … ``Experts (nominal)``), the mean ± std
-across runs of CR (the per-run mean), FPR, FNR, CVR and RFD; writes the same numbers to
+across runs of CR (the per-run mean), FPR, FNR, FNR_required, CVR and RFD (null where a run
+lacks a value, e.g. older runs without FNR_required); writes the same numbers to
 ``summary.json`` in that directory. Runs of different experiments are refused.
 """
 
@@ -17,7 +18,7 @@ import math
 import sys
 from pathlib import Path
 
-METRICS = ("CR_mean", "FPR", "FNR", "CVR", "RFD")
+METRICS = ("CR_mean", "FPR", "FNR", "FNR_required", "CVR", "RFD")
 
 
 def load_runs(root: Path) -> list[dict]:

@@ -31,6 +31,7 @@ def test_mean_and_sample_std_per_row(tmp_path, capsys):
     mean, std = out["D-ICRL 1"]["CR_mean"]
     assert mean == 12.0 and math.isclose(std, math.sqrt(8.0))
     assert out["Experts (ground truth)"]["FPR"] is None
+    assert out["D-ICRL 1"]["FNR_required"] is None  # these runs predate the column
     assert "12.000 ± 2.828" in capsys.readouterr().out
 
 
