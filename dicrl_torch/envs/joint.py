@@ -39,6 +39,19 @@ def _flat_box(space: spaces.Box) -> tuple[np.ndarray, np.ndarray]:
             np.asarray(space.high, dtype=np.float64).ravel())
 
 
+def _boxes(agents: list[str], space_of: Callable[[str], spaces.Space],
+           problem: Callable[[str, spaces.Space], str]) -> list[spaces.Box]:
+    """Every agent's space from ``space_of``; the first that is not a ``Box`` raises
+    ``ValueError(problem(agent, space))``."""
+    found = []
+    for agent in agents:
+        space = space_of(agent)
+        if not isinstance(space, spaces.Box):
+            raise ValueError(problem(agent, space))
+        found.append(space)
+    return found
+
+
 def _joint_box(boxes: list[spaces.Box]) -> spaces.Box:
     """The concatenation of flattened boxes as one float32 ``Box``."""
     lows, highs = zip(*(_flat_box(b) for b in boxes), strict=True)
@@ -108,34 +121,23 @@ class JointAgentEnv(gym.Env):
         self.env = env
         self.agent_order: list[str] = agents
         name = _env_name(env)
-        action_boxes = []
-        for agent in agents:
-            space = env.action_space(agent)
-            if not isinstance(space, spaces.Box):
-                raise ValueError(
-                    f"JointAgentEnv needs a continuous (Box) action space for every agent, "
-                    f"but agent {agent!r} of {name} has {space!r}. Make the game with "
-                    f"continuous actions, e.g. mpe2's simple_spread_v3.parallel_env("
-                    f"continuous_actions=True), or wrap it so that it maps a Box action to "
-                    f"its own."
-                )
-            action_boxes.append(space)
+        action_boxes = _boxes(
+            agents, env.action_space,
+            lambda agent, space: f"JointAgentEnv needs a continuous (Box) action space for "
+            f"every agent, but agent {agent!r} of {name} has {space!r}. Make the game with "
+            f"continuous actions, e.g. mpe2's simple_spread_v3.parallel_env("
+            f"continuous_actions=True), or wrap it so that it maps a Box action to its own.")
         self._action_boxes = action_boxes
         self._action_sizes = [int(np.prod(b.shape)) for b in action_boxes]
         self.action_space = _joint_box(action_boxes)
 
         self._state_fn: StateFn | None = None
         if isinstance(observation, str) and observation == "agents":
-            boxes = []
-            for agent in agents:
-                space = env.observation_space(agent)
-                if not isinstance(space, spaces.Box):
-                    raise ValueError(
-                        f"observation='agents' concatenates Box observations, but agent "
-                        f"{agent!r} of {name} has {space!r}; pass observation='state' or "
-                        f"a state_fn with its observation_space."
-                    )
-                boxes.append(space)
+            boxes = _boxes(
+                agents, env.observation_space,
+                lambda agent, space: f"observation='agents' concatenates Box observations, "
+                f"but agent {agent!r} of {name} has {space!r}; pass observation='state' or a "
+                f"state_fn with its observation_space.")
             self._obs_sizes = [int(np.prod(b.shape)) for b in boxes]
             self.observation_space = _joint_box(boxes)
         elif isinstance(observation, str) and observation == "state":
