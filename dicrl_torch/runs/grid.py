@@ -62,13 +62,11 @@ CONSTRAINT_RULES = ("certificate", "threshold")
 GRID_BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
 
 
-def constraint_names(names: Sequence[str], cost_weights: torch.Tensor,
-                     threshold: float) -> list[str]:
-    """Names of the features that ``cost_weights`` ``[d]`` marks as constraints
-    (``ω_c,j >= threshold``): kept in the table rows, so that the figures of a distributed
-    run, drawn by one process, know every learner's constraints."""
-    return [name for name, w in zip(names, cost_weights.tolist(), strict=True)
-            if w >= threshold]
+def constraint_names(names: Sequence[str], learned) -> list[str]:
+    """Names of the features in the learned mask ``[d]`` bool (tensor or array): kept in
+    the table rows, so that the figures of a distributed run, drawn by one process, know
+    every learner's constraints."""
+    return [name for name, on in zip(names, np.asarray(learned).tolist(), strict=True) if on]
 
 
 @dataclass(frozen=True)
@@ -349,7 +347,7 @@ class GridTask:
                                                 ev.true_reward_weights),
                    SR=None, multiplier=float(trainer.state.eta_bar[i, -1]),
                    n_learned=int(learned.sum()))
-        row["constraints"] = [n for n, on in zip(names, learned.tolist(), strict=True) if on]
+        row["constraints"] = constraint_names(names, learned)
         return row
 
     def row_scalars(self, row: dict) -> list[tuple[str, float, int]]:
@@ -407,8 +405,7 @@ class GridTask:
         row = ev.rollout(result.solution.policy_at)
         row.update(ev.rates(result.constraint_mask), RFD=None, SR=None,
                    n_learned=len(result.added), stop_reason=result.stop_reason)
-        row["constraints"] = constraint_names(self.cost_basis.names,
-                                              result.constraint_mask.double(), 0.5)
+        row["constraints"] = constraint_names(self.cost_basis.names, result.constraint_mask)
         return row, history
 
     # ------------------------------------------------------------------ identifiability
