@@ -6,6 +6,7 @@ with ``config_checks``, that reads a config; everything is handed to the library
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 from typing import Any
 
@@ -95,6 +96,14 @@ def check_shard_contents(cfg) -> None:
                      read=shard_files_read_by(cfg, torchrun_rank(cfg)))
 
 
+def drone_env_factory(cfg):
+    """The SAC solver's ``env_factory`` of the arena: :class:`JointDroneEnv` with the
+    config's ``env.arena`` settings (the solver adds ``constrained``)."""
+    from dicrl_torch.envs.drones import JointDroneEnv
+
+    return functools.partial(JointDroneEnv, **OmegaConf.to_container(cfg.env.arena))
+
+
 def drone_task(cfg):
     """The drone arena's task (imports stable-baselines3: only for the arena)."""
     from dicrl_torch.runs.drones import DroneTask, derived_seed
@@ -103,7 +112,7 @@ def drone_task(cfg):
     cost_basis = instantiate(cfg.features.cost)
     s, a, b = cfg.solver, cfg.algo, cfg.baselines
     solver = build(s.solver, reward_basis=reward_basis, cost_basis=cost_basis,
-                   seed=derived_seed(cfg.seed, 1), env_kwargs=dict(cfg.env.arena))
+                   seed=derived_seed(cfg.seed, 1), env_factory=drone_env_factory(cfg))
     return DroneTask(
         solver=solver, reward_basis=reward_basis, cost_basis=cost_basis,
         split=list(cfg.split), seed=cfg.seed, eval_episodes=cfg.eval_episodes,

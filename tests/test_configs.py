@@ -3,6 +3,7 @@ goes nowhere); the demo entry point runs end to end."""
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 import subprocess
@@ -14,6 +15,8 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from tiny_train import TINY, TRAIN, comparable, run_train
+
+from dicrl_torch.envs.drones import JointDroneEnv
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -64,7 +67,8 @@ def test_every_drone_target_instantiates(cost, reward):
             "experiment=table2_quick", f"features/cost={cost}", f"features/reward={reward}"])
     rb, cb = instantiate(cfg.features.reward), instantiate(cfg.features.cost)
     solver = build(cfg.solver.solver, reward_basis=rb, cost_basis=cb, seed=0,
-                   env_kwargs={**cfg.env.arena, "max_steps": 5})
+                   env_factory=functools.partial(JointDroneEnv,
+                                                 **{**cfg.env.arena, "max_steps": 5}))
     sol = solver.solve([0.0] * rb.dim + [-1.0], [0.0] * cb.dim, 0, n_eval_episodes=1)
     assert sol.mu_r.shape == (rb.dim,) and sol.mu_c.shape == (cb.dim,)
     assert cb.true_constraints().shape == (cb.dim,)

@@ -247,6 +247,30 @@ def test_not_an_archive(tmp_path):
         load_continuous_demonstrations(path)
 
 
+def test_agent_lengths_mask_the_actions_of_agents_that_left(tmp_path):
+    """``agent_lengths [m, N]``: the steps each agent acted. The recorder counts them;
+    they round-trip through the file; "everyone acted throughout" is stored as None, so
+    both ways of saying it are equal; out-of-range entries are refused by field."""
+    d = record_demonstrations(PointsEnv(n=3, limit=10), towards_origin, 2, seed=3)
+    assert d.agent_lengths.tolist() == [[3, 4, 5]] * 2  # agent i leaves after 3 + i steps
+    mask = d.acting_mask()
+    assert mask.shape == (2, 5, 3) and mask.sum(1).tolist() == [[3, 4, 5]] * 2
+    path = save_continuous_demonstrations(tmp_path / "acted.npz", d)
+    assert load_continuous_demonstrations(path) == d
+    plain = ContinuousDemonstrations(states=d.states, actions=d.actions, lengths=d.lengths)
+    full = ContinuousDemonstrations(states=d.states, actions=d.actions, lengths=d.lengths,
+                                    agent_lengths=np.full((2, 3), 5))
+    assert full.agent_lengths is None and full == plain
+    assert plain.acting_mask().all() and plain != d
+    with pytest.raises(ValueError, match=r"field 'agent_lengths' holds 6 for episode 0, "
+                                         r"agent 1.*lengths\[0\] = 5"):
+        ContinuousDemonstrations(states=d.states, actions=d.actions, lengths=d.lengths,
+                                 agent_lengths=np.array([[5, 6, 5], [5, 5, 5]]))
+    with pytest.raises(ValueError, match=r"field 'agent_lengths' must be ints of shape \(2, 3\)"):
+        ContinuousDemonstrations(states=d.states, actions=d.actions, lengths=d.lengths,
+                                 agent_lengths=np.ones((2, 2), np.int64))
+
+
 # ====================================================================== recorder
 def test_record_uses_state_and_matches_the_dynamics():
     env = PointsEnv(n=3, limit=10)

@@ -3,6 +3,7 @@ M(C)E-greedy baseline and the Table 2 entry point (experiment=table2_quick)."""
 
 from __future__ import annotations
 
+import functools
 import json
 import subprocess
 import sys
@@ -21,6 +22,7 @@ from dicrl_torch.comm import CompleteSchedule, SimulatedCommunicator
 from dicrl_torch.comm.distributed import ALLOWED_FIELDS
 from dicrl_torch.demos import partition_demonstrations
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations
+from dicrl_torch.envs.drones import JointDroneEnv, start_support
 from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
 from dicrl_torch.solvers.sac import SACConstrainedSolver, discounted_demo_feature_sums
 
@@ -32,7 +34,7 @@ def make_solver(seed: int = 0) -> SACConstrainedSolver:
     return SACConstrainedSolver(
         reward_basis=DoorLocationRewardBasis(), cost_basis=CellOccupancyCostBasis(), seed=seed,
         n_envs=2, gamma=GAMMA, learning_starts=40, batch_size=16, net_arch=(16, 16),
-        env_kwargs={"max_steps": 20}, n_eval_episodes=2)
+        env_factory=functools.partial(JointDroneEnv, max_steps=20), n_eval_episodes=2)
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +60,7 @@ def trainer(demos, seed: int, communicator=None) -> DICRL:
     base = make_solver(seed)
     shards = partition_demonstrations(demos, [1, 2])
     model = SACLearnerModel(solvers=[base.clone(seed + 10), base.clone(seed + 11)],
-                            timesteps=30, n_eval_episodes=2)
+                            timesteps=30, n_eval_episodes=2, start_states=start_support())
     return DICRL(learner_model=model, shards=shards, trajectory_counts=[1, 2],
                  communicator=communicator or SimulatedCommunicator(2),
                  inner_schedule=CompleteSchedule(n_learners=2),

@@ -348,6 +348,20 @@ def demos() -> DroneDemonstrations:
     return make_drone_demonstrations(9, rng=np.random.default_rng(0))
 
 
+def test_drone_pairs_convert_to_continuous_demonstrations(demos):
+    """What a solver of any continuous game reads: the same arrays, and each drone's
+    acting steps (its commands after it reached its door are ignored by the env)."""
+    c = demos.to_continuous()
+    assert (c.n_agents, c.state_dim, c.action_dim) == (2, 4, 2) and c.agent_names == AGENTS
+    assert np.array_equal(c.states, demos.states) and np.array_equal(c.actions, demos.actions)
+    assert np.array_equal(c.lengths, demos.lengths) and np.array_equal(c.seeds, demos.seeds)
+    acted = demos.drone_lengths()
+    assert not (acted == demos.lengths[:, None]).all()  # some drone arrives before its mate
+    assert np.array_equal(c.agent_lengths, acted)
+    assert np.array_equal(c.acting_mask(),
+                          np.arange(demos.horizon)[None, :, None] < acted[:, None, :])
+
+
 def test_demonstrations_reach_doors_without_violation(demos):
     assert demos.n_pairs == 9 and demos.states.shape == (9, demos.horizon + 1, 2, 4)
     assert demos.actions.shape == (9, demos.horizon, 2, 2) and demos.lengths.max() == \
@@ -641,5 +655,5 @@ def test_drone_shares_give_each_feature_to_its_drone(basis):
             assert name == "proximity" and row.tolist() == [0.5, 0.5]
     stray = DoorLocationRewardBasis()
     stray.names = [*stray.names[:-1], "drone2/closeness"]
-    with pytest.raises(ValueError, match="beyond the arena's 2"):
+    with pytest.raises(ValueError, match="beyond the 2 of the game"):
         stray.drone_shares()

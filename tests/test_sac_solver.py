@@ -7,6 +7,7 @@ are reproducible and the file runs in well under a minute.
 from __future__ import annotations
 
 import copy
+import functools
 import tempfile
 
 import numpy as np
@@ -16,7 +17,7 @@ from gymnasium import spaces
 from stable_baselines3.common.logger import Logger
 
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations
-from dicrl_torch.envs.drones import JointDroneEnv, joint_obs_to_state
+from dicrl_torch.envs.drones import JointDroneEnv, joint_obs_from_states, joint_obs_to_state
 from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
 from dicrl_torch.solvers.sac import (
     BoxScaler,
@@ -25,7 +26,6 @@ from dicrl_torch.solvers.sac import (
     SACConstrainedSolver,
     SACSolution,
     discounted_demo_feature_sums,
-    joint_obs_from_states,
 )
 
 torch.set_num_threads(1)
@@ -37,7 +37,8 @@ GAMMA = 0.95
 def make_solver(seed: int = 0, **kwargs) -> SACConstrainedSolver:
     args = dict(reward_basis=DoorLocationRewardBasis(), cost_basis=CellOccupancyCostBasis(),
                 seed=seed, n_envs=2, gamma=GAMMA, learning_starts=100, batch_size=32,
-                env_kwargs={"max_steps": 30}, n_eval_episodes=4)
+                env_factory=functools.partial(JointDroneEnv, max_steps=30),
+                n_eval_episodes=4)
     args.update(kwargs)
     return SACConstrainedSolver(**args)
 
@@ -115,7 +116,7 @@ def test_terminal_transition_gets_absorbing_value():
     kw = dict(reward_basis=DoorLocationRewardBasis(), cost_basis=CellOccupancyCostBasis(),
               gamma=0.9)
     buf = FeatureReplayBuffer(10, env.observation_space, env.action_space, "cpu", n_envs=2,
-                              **kw)
+                              state_shape=(2, 4), **kw)
     obs, info = env.reset(seed=0)
     act = np.zeros((2, 4), np.float32)
     infos = [{"state": info["state"]}, {"state": info["state"], "TimeLimit.truncated": True}]
@@ -127,13 +128,14 @@ def test_terminal_transition_gets_absorbing_value():
     np.testing.assert_allclose(r, 10.0 * np.array([1.0, 0.1]) * buf.reward_features[0, :, 0])
     with pytest.raises(ValueError, match="optimize_memory_usage"):
         FeatureReplayBuffer(10, env.observation_space, env.action_space, "cpu",
-                            optimize_memory_usage=True, **kw)
+                            optimize_memory_usage=True, state_shape=(2, 4), **kw)
 
 
 def test_sampling_before_weights_and_bad_weights_raise():
     buf = FeatureReplayBuffer(8, spaces.Box(-20, 20, (20,)), spaces.Box(-1, 1, (4,)), "cpu",
                               reward_basis=DoorLocationRewardBasis(),
-                              cost_basis=CellOccupancyCostBasis(), gamma=0.9)
+                              cost_basis=CellOccupancyCostBasis(), gamma=0.9,
+                              state_shape=(2, 4))
     with pytest.raises(RuntimeError, match="set_weights"):
         buf.compute_rewards(np.array([0]), np.array([0]))
     with pytest.raises(ValueError, match=r"reward_weights must have shape \[4\]"):
@@ -245,7 +247,8 @@ def test_short_training_increases_a_trivial_reward():
     # Reward: progress of both drones towards their doors. At temperature 0.1 relative
     # to weights 5 (i.e. ent_coef 1 at weights 50) SAC learns it in ~1.5k steps.
     solver = make_solver(seed=0, n_envs=1, ent_coef=0.1, learning_rate=1e-3, batch_size=64,
-                         learning_starts=200, env_kwargs={"max_steps": 40},
+                         learning_starts=200,
+                         env_factory=functools.partial(JointDroneEnv, max_steps=40),
                          n_eval_episodes=16)
     eta = np.array([5.0, 0.0, 5.0, 0.0, 0.0])
     w = torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=torch.float64)
@@ -265,7 +268,7 @@ def demos():
 
 def test_log_likelihood_matches_sb3_density(demos):
     solver = make_solver(seed=5)
-    per = solver.log_likelihood(demos, per_pair=True)
+    per = solver.log_likelihood(demos, per_episode=True)
     assert per.shape == (2,) and torch.isfinite(per).all()
     assert solver.log_likelihood(demos) == pytest.approx(float(per.sum()))
     # Cross-check the first step (both drones fly) against SB3's own squashed density.
@@ -278,7 +281,7 @@ def test_log_likelihood_matches_sb3_density(demos):
     # Demonstrations cut to their first step isolate that step's log-density.
     one = type(demos)(states=demos.states[:, :2], actions=demos.actions[:, :1],
                       lengths=np.ones(2, np.int64), dt=demos.dt)
-    torch.testing.assert_close(solver.log_likelihood(one, per_pair=True), sb3.double(),
+    torch.testing.assert_close(solver.log_likelihood(one, per_episode=True), sb3.double(),
                                rtol=1e-4, atol=1e-4)
 
 
@@ -355,7 +358,7 @@ def test_demonstrations_are_refused_when_malformed(demos):
     with pytest.raises(ValueError, match="demo_fraction"):
         make_solver(demo_fraction=1.0)
     solver = make_solver(demo_fraction=0.5)
-    with pytest.raises(ValueError, match="DroneDemonstrations"):
+    with pytest.raises(ValueError, match="ContinuousDemonstrations"):
         solver.set_demonstrations(np.zeros((2, 10, 2, 4)))
     with pytest.raises(ValueError, match="fraction"):
         solver.replay_buffer.set_demonstrations(demos, -0.1)
@@ -388,7 +391,7 @@ def test_box_scaler_maps_the_bounds_onto_unit_box():
                     sac_kwargs={"policy_kwargs": {"features_extractor_class": BoxScaler}})
 
 
-# ------------------------------------------------------------------ per-drone critics
+# ------------------------------------------------------------------ per-agent critics
 def hand_drone_rewards(buf: FeatureReplayBuffer, b: np.ndarray, e: np.ndarray,
                        eta: np.ndarray, wc: np.ndarray) -> np.ndarray:
     """``[B, 2]`` each drone's reward from the bases' layout: its 2 reward features, its
@@ -404,8 +407,8 @@ def hand_drone_rewards(buf: FeatureReplayBuffer, b: np.ndarray, e: np.ndarray,
     return buf.reward_scale[b, e][:, None] * np.stack(cols, 1)
 
 
-def test_per_drone_rewards_are_each_drones_share_of_the_joint_reward():
-    solver = make_solver(seed=3, learning_starts=10_000, per_drone_critics=True)
+def test_per_agent_rewards_are_each_drones_share_of_the_joint_reward():
+    solver = make_solver(seed=3, learning_starts=10_000, per_agent_critics=True)
     rng = np.random.default_rng(8)
     eta, wc = random_weights(rng)
     wc[200] = 2.0  # make the shared proximity's split visible
@@ -450,16 +453,16 @@ def test_decomposed_sac_with_one_reward_column_matches_sb3_sac(filled):
     assert not torch.equal(theirs["actor.mu.weight"], before["actor.mu.weight"])
 
 
-def test_per_drone_critics_train_one_column_per_drone():
-    solver = make_solver(per_drone_critics=True)
+def test_per_agent_critics_train_one_column_per_drone():
+    solver = make_solver(per_agent_critics=True)
     eta, wc = random_weights(np.random.default_rng(2))
     solver.solve(eta, wc, 300, n_eval_episodes=1)
     assert solver.model._n_updates > 0
     batch = solver.replay_buffer.sample(16)
     for q in solver.model.critic(batch.observations, batch.actions):
         assert q.shape == (16, 2) and torch.isfinite(q).all()
-    with pytest.raises(ValueError, match="per_drone_critics must be a bool"):
-        make_solver(per_drone_critics=1)
+    with pytest.raises(ValueError, match="per_agent_critics must be a bool"):
+        make_solver(per_agent_critics=1)
 
     class Anonymous(torch.nn.Module):  # a basis that cannot say whose features are whose
         dim = 4
@@ -467,8 +470,8 @@ def test_per_drone_critics_train_one_column_per_drone():
         def forward(self, states, actions=None):
             return torch.zeros(*np.shape(states)[:-2], 4, dtype=torch.float64)
 
-    with pytest.raises(ValueError, match="drone_shares"):
-        make_solver(per_drone_critics=True, reward_basis=Anonymous())
+    with pytest.raises(ValueError, match="agent_shares"):
+        make_solver(per_agent_critics=True, reward_basis=Anonymous())
     with pytest.raises(ValueError, match="fixed ent_coef"):
         DecomposedSAC("MlpPolicy", solver.vec_env, ent_coef="auto",
                       policy_kwargs={"n_rewards": 2})

@@ -8,6 +8,7 @@ Tiny runs (tens of env steps) on one CPU thread: seconds in all.
 
 from __future__ import annotations
 
+import functools
 import io
 
 import numpy as np
@@ -16,6 +17,7 @@ import torch
 
 from dicrl_torch.algos.models import LearnerModel, SACLearnerModel
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations
+from dicrl_torch.envs.drones import JointDroneEnv
 from dicrl_torch.features.drone import (
     CellOccupancyCostBasis,
     DoorLocationRewardBasis,
@@ -35,7 +37,8 @@ def make_solver(seed: int = 3, **kwargs) -> SACConstrainedSolver:
     # (random actions) ends at 80 steps, after the first save.
     args = dict(reward_basis=DoorLocationRewardBasis(), cost_basis=CellOccupancyCostBasis(),
                 seed=seed, n_envs=2, gamma=GAMMA, learning_starts=80, batch_size=16,
-                buffer_size=100, net_arch=(16, 16), env_kwargs={"max_steps": 23},
+                buffer_size=100, net_arch=(16, 16),
+                env_factory=functools.partial(JointDroneEnv, max_steps=23),
                 n_eval_episodes=2, demo_fraction=0.25)
     args.update(kwargs)
     return SACConstrainedSolver(**args)
@@ -131,8 +134,8 @@ def test_training_continues_exactly_from_a_saved_state(demos):
         or not torch.equal(other.reward_sums, expected[1].reward_sums)
 
 
-@pytest.mark.parametrize("kwargs", [dict(per_drone_critics=True, scale_observations=True)])
-def test_exact_state_with_per_drone_critics_and_a_clone(demos, kwargs):
+@pytest.mark.parametrize("kwargs", [dict(per_agent_critics=True, scale_observations=True)])
+def test_exact_state_with_per_agent_critics_and_a_clone(demos, kwargs):
     # A clone (its own seed and streams, not yet drawn from) saved into a fresh solver
     # built with the ORIGINAL's arguments: the state carries the clone's seed.
     base = make_solver(**kwargs)

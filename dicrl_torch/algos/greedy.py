@@ -586,7 +586,8 @@ def reachable_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward
 
 
 class SACGreedyConstraintInference(GreedyLoop):
-    """M(C)E-greedy on the drone arena, with the SAC-style solver as the model.
+    """M(C)E-greedy on a continuous game (the paper's: the drone arena), with the
+    SAC-style solver as the model.
 
     The paper's §6.2 protocol: the greedy is given the reward learned by D-ICRL
     (``ω_r``), all pairs pooled. A constraint set C is enforced by the penalty
@@ -601,7 +602,8 @@ class SACGreedyConstraintInference(GreedyLoop):
     Args:
         solver: a (pre-trained) :class:`~dicrl_torch.solvers.sac.SACConstrainedSolver`.
         reward_weights: ``[l_r]`` the given ``ω_r``.
-        demonstrations: all pairs (``DroneDemonstrations``).
+        demonstrations: all episodes (``ContinuousDemonstrations`` of the solver's game,
+            or with ``to_continuous()``, e.g. the arena's ``DroneDemonstrations``).
         penalty: the per-step penalty of entering a constraint (in reward units).
         timesteps: SAC steps per trial.
         epsilon: stop below this gain in nats per pair; None: ``ln(m) / (2m)`` (BIC).
@@ -637,7 +639,7 @@ class SACGreedyConstraintInference(GreedyLoop):
         self.candidates = ~(sums > _POSITIVE).any(0)
         self.names = list(getattr(solver.cost_basis, "names",
                                   [f"feature {j}" for j in range(solver.l_c)]))
-        m = demonstrations.n_pairs
+        m = demonstrations.n_trajectories
         self.epsilon = math.log(m) / (2 * m) if epsilon is None else float(epsilon)
         self.max_constraints = solver.l_c if max_constraints is None else int(max_constraints)
         self.progress, self.label, self.model_name = progress, "M(C)E-greedy", "m(c)e"
@@ -654,7 +656,7 @@ class SACGreedyConstraintInference(GreedyLoop):
 
     def mean_log_likelihood(self, solution) -> float:
         # The policy IS the solver's state: score under the trial's own solver.
-        return solution.solver.log_likelihood(self.demos) / self.demos.n_pairs
+        return solution.solver.log_likelihood(self.demos) / self.demos.n_trajectories
 
     def expected_accrual(self, solution) -> torch.Tensor:
         return solution.mu_c

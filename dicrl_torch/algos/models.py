@@ -8,9 +8,10 @@ implementations ship:
 - :class:`TabularLearnerModel`: the exact factored soft-Bellman solver of the grid
   world (deterministic, stateless: every learner shares it).
 - :class:`SACLearnerModel`: one SAC-style solver
-  (:class:`~dicrl_torch.solvers.sac.SACConstrainedSolver`) per local learner for the
-  continuous drone arena (stochastic estimates from rollouts, warm-started across calls,
-  so each learner keeps its own, and its state is part of a checkpoint).
+  (:class:`~dicrl_torch.solvers.sac.SACConstrainedSolver`) per local learner for a
+  continuous game such as the drone arena (stochastic estimates from rollouts,
+  warm-started across calls, so each learner keeps its own, and its state is part of a
+  checkpoint).
 
 A new environment needs only a new ``LearnerModel``; the trainer does not change.
 """
@@ -30,9 +31,8 @@ from dicrl_torch.envs.grid import encode_joint
 from dicrl_torch.features.bases import FeatureBasis
 from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
 
-if TYPE_CHECKING:  # imported where used: the drone arena and SB3 are slow to import and
-    # the grid world never needs them
-    from dicrl_torch.demos.drone_demos import DroneDemonstrations
+if TYPE_CHECKING:  # imported where used: SB3 is slow to import and the grid world never
+    # needs it
     from dicrl_torch.solvers.sac import SACConstrainedSolver, SACSolution
 
 
@@ -205,8 +205,8 @@ class TabularLearnerModel:
 
 
 class SACLearnerModel:
-    """The drone learners' model: one :class:`~dicrl_torch.solvers.sac.SACConstrainedSolver`
-    per local learner (stateful).
+    """The continuous learners' model: one
+    :class:`~dicrl_torch.solvers.sac.SACConstrainedSolver` per local learner (stateful).
 
     Each local learner owns one solver: SAC is warm-started across calls, so a solver's
     state is that learner's policy. Every :meth:`solve` continues training for
@@ -218,12 +218,15 @@ class SACLearnerModel:
         solvers: one solver per local learner (same bases, discount and game).
         timesteps: env steps of SAC training per solve (per inner step).
         n_eval_episodes: rollouts per estimate (default each solver's own).
+        start_states: ``[P, N, d_s]`` joint states spanning the support of the game's
+            start distribution P0 (e.g. :func:`dicrl_torch.envs.drones.start_support`),
+            for :meth:`start_features`; None: P0 is not known to pin any feature.
     """
 
     stateful = True
 
     def __init__(self, *, solvers: Sequence[SACConstrainedSolver], timesteps: int,
-                 n_eval_episodes: int | None = None) -> None:
+                 n_eval_episodes: int | None = None, start_states: Any = None) -> None:
         from dicrl_torch.solvers.sac import SACConstrainedSolver
 
         solvers = list(solvers)
@@ -232,10 +235,10 @@ class SACLearnerModel:
                              "per local learner.")
         first = solvers[0]
         for s in solvers[1:]:
-            if (s.l_r, s.l_c, s.gamma, s.absorbing) != (first.l_r, first.l_c, first.gamma,
-                                                         first.absorbing):
+            if (s.l_r, s.l_c, s.gamma, s.absorbing, s.spec) != (
+                    first.l_r, first.l_c, first.gamma, first.absorbing, first.spec):
                 raise ValueError("All learners' solvers must share the feature bases' "
-                                 "widths, gamma and the absorbing convention.")
+                                 "widths, gamma, the absorbing convention and the game.")
         if not _is_int(timesteps) or timesteps < 0:
             raise ValueError(f"timesteps must be an int >= 0, got {timesteps!r}.")
         if n_eval_episodes is not None and (not _is_int(n_eval_episodes)
@@ -245,6 +248,7 @@ class SACLearnerModel:
             n_eval_episodes
         self.reward_dim, self.cost_dim = first.l_r, first.l_c
         self.dtype = None
+        self.start_states = None if start_states is None else torch.as_tensor(start_states)
 
     def inner_solver(self, learner: int) -> SACConstrainedSolver:
         """Learner ``learner``'s own solver (its policy is the solver's state)."""
@@ -254,30 +258,30 @@ class SACLearnerModel:
         return self.solvers[learner]
 
     def start_features(self) -> torch.Tensor:
-        """The cost features positive anywhere on the support of the arena's P0 (the
-        drones at rest within their start jitter boxes): the solver's features count
-        next states, so the demonstrations never accrue these."""
-        from dicrl_torch.envs.drones import start_support
-
-        phi = self.solvers[0].cost_basis(torch.as_tensor(start_support()))
+        """The cost features positive anywhere on the support of P0 (``start_states``):
+        the solver's features count next states, so the demonstrations never accrue
+        these. All False without ``start_states``."""
+        if self.start_states is None:
+            return torch.zeros(self.cost_dim, dtype=torch.bool)
+        phi = self.solvers[0].cost_basis(self.start_states)
         return (phi > 0).any(0)
 
-    def statistics(self, demos: DroneDemonstrations) -> LocalStatistics:
-        """``μ̂_r``, the cost accrual and ``m`` of a learner's pairs, counted as the
-        solver counts its rollouts (next-state features, absorbing end)."""
-        from dicrl_torch.demos.drone_demos import DroneDemonstrations
+    def statistics(self, demos: Any) -> LocalStatistics:
+        """``μ̂_r``, the cost accrual and ``m`` of a learner's episodes, counted as the
+        solver counts its rollouts (next-state features, absorbing end). ``demos``:
+        ``ContinuousDemonstrations`` of the solvers' game (or with ``to_continuous()``,
+        e.g. ``DroneDemonstrations``)."""
         from dicrl_torch.solvers.sac import discounted_demo_feature_sums
+        from dicrl_torch.solvers.sac.protocol import as_continuous
 
         s = self.solvers[0]
-        if not isinstance(demos, DroneDemonstrations) or demos.n_pairs < 1:
-            raise ValueError("A drone learner needs DroneDemonstrations with at least one "
-                             "pair.")
+        demos = as_continuous(demos, s.spec)  # refused, naming the fix, if it does not fit
 
         def mean(basis: torch.nn.Module) -> torch.Tensor:
             return discounted_demo_feature_sums(demos, basis, s.gamma,
                                                 absorbing=s.absorbing).mean(0)
 
-        return LocalStatistics(m=demos.n_pairs, mu_r_hat=mean(s.reward_basis),
+        return LocalStatistics(m=demos.n_episodes, mu_r_hat=mean(s.reward_basis),
                                cost_accrual=mean(s.cost_basis))
 
     def solve(self, learner: int, eta: torch.Tensor, cost_weights: torch.Tensor
@@ -286,7 +290,7 @@ class SACLearnerModel:
                                                 n_eval_episodes=self.n_eval_episodes)
 
     def log_likelihood(self, learner: int, eta: torch.Tensor, cost_weights: torch.Tensor,
-                       demos: DroneDemonstrations) -> float:
+                       demos: Any) -> float:
         """Trains on ``(η, ω_c)`` for ``timesteps`` first (the policy IS the solver's
         state), then scores ``demos`` under it."""
         solver = self.inner_solver(learner)

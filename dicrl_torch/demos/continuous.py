@@ -14,7 +14,11 @@ is:
   input) and :class:`ContinuousDemonstrations` overwrites them with the episode's last
   state and zero actions, so that the stored arrays are NaN-free and two sets that
   differ only in their padding are equal;
-- optionally ``agent_names [N]`` (str) and ``seeds [m]`` (int, each episode's reset seed).
+- optionally ``agent_names [N]`` (str), ``seeds [m]`` (int, each episode's reset seed)
+  and ``agent_lengths [m, N]`` (int in ``[0, lengths[k]]``: the steps agent ``i`` acted
+  in episode ``k``; after them it had left the episode, e.g. arrived or frozen, and its
+  recorded actions, ignored by the env, are not its choices). Without it every agent
+  acts for the whole episode.
 
 On disk it is an ``.npz`` archive (plus ``format_version``) written atomically by
 :func:`save_continuous_demonstrations` and read by :func:`load_continuous_demonstrations`
@@ -48,6 +52,7 @@ from dicrl_torch.demos.npz import (
     read_field,
 )
 from dicrl_torch.demos.trajectories import TrajectoryArrays
+from dicrl_torch.envs.joint import agent_rows
 
 __all__ = [
     "FORMAT_VERSION",
@@ -62,7 +67,7 @@ __all__ = [
 FORMAT_VERSION = 1
 ARRAY_FIELDS: tuple[str, ...] = ("states", "actions", "lengths")
 FIELDS: tuple[str, ...] = ARRAY_FIELDS + ("format_version",)
-OPTIONAL_FIELDS: tuple[str, ...] = ("agent_names", "seeds")
+OPTIONAL_FIELDS: tuple[str, ...] = ("agent_names", "seeds", "agent_lengths")
 
 Policy = Callable[[dict[str, Any], Any], Mapping[str, Any]]
 """``policy(observations, env) -> actions``: the live agents' (``env.agents``)
@@ -96,7 +101,8 @@ def _check_finite_in_episodes(a: np.ndarray, lengths: np.ndarray, field: str,
 
 def validate_continuous_arrays(
     states: ArrayLike, actions: ArrayLike, lengths: ArrayLike,
-    agent_names: ArrayLike | None = None, seeds: ArrayLike | None = None, *, source: str,
+    agent_names: ArrayLike | None = None, seeds: ArrayLike | None = None,
+    agent_lengths: ArrayLike | None = None, *, source: str,
 ) -> None:
     """Check continuous demonstration arrays against the schema; raise ``ValueError``
     if not.
@@ -109,6 +115,8 @@ def validate_continuous_arrays(
         lengths: ``[m]`` int in ``[1, T]``.
         agent_names: None or ``N`` distinct non-empty strings.
         seeds: None or ``[m]`` non-negative ints.
+        agent_lengths: None or ``[m, N]`` ints, ``agent_lengths[k, i]`` in
+            ``[0, lengths[k]]``.
         source: what the arrays came from, put at the start of every message.
 
     Raises:
@@ -181,6 +189,22 @@ def validate_continuous_arrays(
                 f"{source}: field 'seeds' must be non-negative ints of shape ({m},) (one "
                 f"reset seed per episode), got dtype {seeds.dtype} shape {seeds.shape}; "
                 f"store `seeds.astype(np.int64)` or leave it out.")
+    if agent_lengths is not None:
+        acted = np.asarray(agent_lengths)
+        if not np.issubdtype(acted.dtype, np.integer) or acted.shape != (m, n):
+            raise ValueError(
+                f"{source}: field 'agent_lengths' must be ints of shape ({m}, {n}) (per "
+                f"episode and agent the steps it acted), got dtype {acted.dtype} shape "
+                f"{acted.shape}; store `agent_lengths.astype(np.int64)` or leave it out "
+                f"(every agent then acts for the whole episode).")
+        out = (acted < 0) | (acted > lengths[:, None])
+        if out.any():
+            k, i = (int(v) for v in np.argwhere(out)[0])
+            raise ValueError(
+                f"{source}: field 'agent_lengths' holds {int(acted[k, i])} for episode {k}, "
+                f"agent {i}, outside [0, lengths[{k}] = {int(lengths[k])}]: an agent acts "
+                f"for at most the steps of its episode. Fix the entry or leave the field "
+                f"out.")
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -200,6 +224,9 @@ class ContinuousDemonstrations(TrajectoryArrays):
         lengths: ``[m]`` steps of each episode, in ``[1, T]``.
         agent_names: optional ``N`` agent names (e.g. ``env.possible_agents``).
         seeds: optional ``[m]`` reset seed of each episode.
+        agent_lengths: optional ``[m, N]`` steps each agent acted (module docstring);
+            stored as None when every agent acted for its whole episode, so that the
+            two ways of saying so are equal.
     """
 
     states: np.ndarray
@@ -207,13 +234,15 @@ class ContinuousDemonstrations(TrajectoryArrays):
     lengths: np.ndarray
     agent_names: tuple[str, ...] | None = None
     seeds: np.ndarray | None = None
+    agent_lengths: np.ndarray | None = None
 
-    per_trajectory: ClassVar[tuple[str, ...]] = ("states", "actions", "lengths", "seeds")
+    per_trajectory: ClassVar[tuple[str, ...]] = ("states", "actions", "lengths", "seeds",
+                                                 "agent_lengths")
     unit: ClassVar[str] = "episodes"
 
     def __post_init__(self) -> None:
         validate_continuous_arrays(self.states, self.actions, self.lengths,
-                                   self.agent_names, self.seeds,
+                                   self.agent_names, self.seeds, self.agent_lengths,
                                    source="ContinuousDemonstrations")
         lengths = frozen(self.lengths, np.int64)
         # Canonical padding: downstream code may evaluate features on the whole padded
@@ -232,6 +261,11 @@ class ContinuousDemonstrations(TrajectoryArrays):
                                tuple(str(s) for s in np.asarray(self.agent_names).tolist()))
         if self.seeds is not None:
             object.__setattr__(self, "seeds", frozen(self.seeds, np.int64))
+        if self.agent_lengths is not None:
+            acted = np.asarray(self.agent_lengths)
+            whole = bool((acted == lengths[:, None]).all())
+            object.__setattr__(self, "agent_lengths",
+                               None if whole else frozen(acted, np.int64))
 
     @property
     def n_episodes(self) -> int:
@@ -257,6 +291,14 @@ class ContinuousDemonstrations(TrajectoryArrays):
         """``[m, T]`` bool: True for the steps ``t < lengths[k]`` that episode ``k``
         took; a sum over ``(states[:, t], actions[:, t])`` pairs weights by it."""
         return _valid_steps(self.lengths, self.horizon)
+
+    def acting_mask(self) -> np.ndarray:
+        """``[m, T, N]`` bool: True where agent ``i`` acted at step ``t`` of episode
+        ``k`` (``t < agent_lengths[k, i]``, or ``t < lengths[k]`` without them); a
+        likelihood of the actions counts only these."""
+        acted = (np.broadcast_to(self.lengths[:, None], (self.n_episodes, self.n_agents))
+                 if self.agent_lengths is None else self.agent_lengths)
+        return np.arange(self.horizon)[None, :, None] < acted[:, None, :]
 
     def state_mask(self) -> np.ndarray:
         """``[m, T+1]`` bool: True for the states ``t <= lengths[k]`` of episode ``k``."""
@@ -297,6 +339,8 @@ def save_continuous_demonstrations(
         fields["agent_names"] = np.array(demos.agent_names, dtype=np.str_)
     if demos.seeds is not None:
         fields["seeds"] = demos.seeds
+    if demos.agent_lengths is not None:
+        fields["agent_lengths"] = demos.agent_lengths
     return atomic_savez(path, fields)
 
 
@@ -381,14 +425,13 @@ class _Recorder:
             except (NotImplementedError, AttributeError):
                 self.use_state = False
         if self.use_state:
-            s = np.asarray(self.env.state(), dtype=np.float64)
+            state = self.env.state()
+            rows = agent_rows(state, len(self.agents))  # as JointAgentEnv reads it
+            if rows is not None:
+                return rows
             n = len(self.agents)
-            if s.ndim == 2 and s.shape[0] == n:
-                return s
-            if s.ndim == 1 and s.size % n == 0:  # e.g. PettingZoo MPE: agents concatenated
-                return s.reshape(n, -1)
             raise ValueError(
-                f"record_demonstrations: env.state() returned shape {s.shape}, which is "
+                f"record_demonstrations: env.state() returned shape {np.shape(state)}, which is "
                 f"neither [N, d_s] nor a flat [N * d_s] for N={n} agents; pass "
                 f"use_state=False to record the stacked observations instead.")
         missing = [a for a in self.agents if a not in self.last_obs]
@@ -417,7 +460,7 @@ def record_demonstrations(
       the agents' observations, each flattened, stacked in ``possible_agents`` order;
     - ``policy(observations, env)`` returns one action per live agent (``env.agents``);
       an agent that has left the episode keeps its last observation and records a zero
-      action;
+      action (``agent_lengths`` counts the steps each agent was live);
     - the episode ends when ``env.agents`` is empty (every agent terminated or
       truncated) or after ``max_steps`` steps.
 
@@ -433,8 +476,8 @@ def record_demonstrations(
             decides by whether ``env.state()`` is implemented.
 
     Returns:
-        The episodes, padded to the longest, with ``agent_names = possible_agents`` and
-        their seeds.
+        The episodes, padded to the longest, with ``agent_names = possible_agents``,
+        their seeds and ``agent_lengths``.
 
     Raises:
         ValueError: bad arguments, a policy that does not act for exactly the live
@@ -454,6 +497,7 @@ def record_demonstrations(
     agents = [str(a) for a in env.possible_agents]
     seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=n_episodes)
     episodes: list[tuple[np.ndarray, np.ndarray]] = []
+    acted = np.zeros((n_episodes, len(agents)), dtype=np.int64)  # steps each agent was live
     for k, episode_seed in enumerate(seeds.tolist()):
         rec = _Recorder(env, use_state)
         observations, _ = env.reset(seed=episode_seed)
@@ -483,17 +527,18 @@ def record_demonstrations(
                                  f"at the episode's first step; keep the action width fixed.")
             # Agents that have left the episode record a zero action.
             actions.append(np.stack([step.get(a, np.zeros(d_a)) for a in agents]))
+            acted[k] += [a in step for a in agents]
             observations, *_ = env.step(dict(chosen))
             states.append(rec.joint_state(observations))
         if not actions:
             raise ValueError(f"record_demonstrations: episode {k} (seed {episode_seed}) "
                              f"ended at its reset, before any step; nothing to record.")
         episodes.append((np.stack(states), np.stack(actions)))
-    return _pad(episodes, agents, seeds)
+    return _pad(episodes, agents, seeds, acted)
 
 
 def _pad(episodes: Sequence[tuple[np.ndarray, np.ndarray]], agents: list[str],
-         seeds: np.ndarray) -> ContinuousDemonstrations:
+         seeds: np.ndarray, acted: np.ndarray) -> ContinuousDemonstrations:
     shapes = {(s.shape[1:], a.shape[1:]) for s, a in episodes}
     if len(shapes) != 1:
         raise ValueError(f"record_demonstrations: the episodes' state and action shapes "
@@ -501,4 +546,5 @@ def _pad(episodes: Sequence[tuple[np.ndarray, np.ndarray]], agents: list[str],
                          f"[N, d_a].")
     S, A, lengths = pad_episodes(episodes)
     return ContinuousDemonstrations(states=S, actions=A, lengths=lengths,
-                                    agent_names=tuple(agents), seeds=seeds.astype(np.int64))
+                                    agent_names=tuple(agents), seeds=seeds.astype(np.int64),
+                                    agent_lengths=acted)

@@ -35,6 +35,7 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
+from dicrl_torch.demos.continuous import ContinuousDemonstrations
 from dicrl_torch.demos.npz import (
     atomic_savez,
     check_expected,
@@ -252,6 +253,16 @@ class DroneDemonstrations(TrajectoryArrays):
         at = in_own_door(self.states[:, 1:, :, :2])  # [m, T, 2]
         first = np.where(at.any(1), at.argmax(1) + 1, self.lengths[:, None])
         return np.minimum(first, self.lengths[:, None]).astype(np.int64)
+
+    def to_continuous(self) -> ContinuousDemonstrations:
+        """The same pairs as generic continuous demonstrations (what solvers and
+        feature sums of any continuous game read): ``states [m, T+1, 2, 4]``,
+        ``actions [m, T, 2, 2]``, ``lengths``, the seeds, the agent names of the arena
+        and, as ``agent_lengths``, :meth:`drone_lengths` (a drone's commands after it
+        reached its door are ignored by the env, so they are not its choices)."""
+        return ContinuousDemonstrations(
+            states=self.states, actions=self.actions, lengths=self.lengths,
+            agent_names=AGENTS, seeds=self.seeds, agent_lengths=self.drone_lengths())
 
     def __repr__(self) -> str:
         return f"DroneDemonstrations(m={self.n_pairs}, T={self.horizon}, dt={self.dt})"

@@ -571,6 +571,29 @@ def joint_obs_to_state(obs: Any) -> Any:
     return torch.stack(parts, -2) if _is_torch(obs) else np.stack(parts, -2)
 
 
+def joint_obs_from_states(states: Any) -> np.ndarray:
+    """Joint observations of :class:`JointDroneEnv` from joint states.
+
+    Drone ``i``'s observation is its own position and velocity, the other drone's, and
+    its own door centre; the joint observation is drone 0's then drone 1's.
+
+    Args:
+        states: ``[..., 2, 4]`` positions and velocities (numpy or torch).
+
+    Returns:
+        ``[..., 20]`` float32, the inverse of :func:`joint_obs_to_state`.
+    """
+    s = states.detach().cpu().numpy() if isinstance(states, torch.Tensor) else np.asarray(states)
+    if s.ndim < 2 or s.shape[-2:] != (N_DRONES, 4):
+        raise ValueError(f"states must have shape [..., {N_DRONES}, 4], got {list(s.shape)}.")
+    doors = door_centres()
+    parts = []
+    for i in range(N_DRONES):
+        door = np.broadcast_to(doors[i], (*s.shape[:-2], 2))
+        parts.append(np.concatenate([s[..., i, :], s[..., 1 - i, :], door], -1))
+    return np.concatenate(parts, -1).astype(np.float32)
+
+
 class JointDroneEnv(gym.Env):
     """Both drones as one gymnasium agent, for single-policy solvers (e.g. SB3 SAC).
 
@@ -582,6 +605,12 @@ class JointDroneEnv(gym.Env):
     ``in_obstacle``, the bool ``collision`` and the ``[2, 4]`` float64
     ``state``.
 
+    It is a joint env as the constrained SAC solver drives one (the protocol of
+    :mod:`dicrl_torch.solvers.sac`): :attr:`n_agents`, :attr:`state_shape`, the infos
+    above, :meth:`obs_from_states` and :meth:`set_rng`; build it for the solver with
+    ``functools.partial(JointDroneEnv, max_steps=...)`` (the solver adds
+    ``constrained``).
+
     Args:
         reward_fn: ``(obs [20], action [4], next_obs [20]) -> float``, e.g. a learner's
             linear reward on :func:`joint_obs_to_state` features; None gives 0.
@@ -590,6 +619,9 @@ class JointDroneEnv(gym.Env):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+    n_agents: int = N_DRONES
+    state_shape: tuple[int, int] = (N_DRONES, 4)
+    """``(N, d_s)`` of ``info["state"]``: per drone ``x, y, vx, vy``."""
 
     def __init__(self, *, reward_fn: RewardFn | None = None, **arena_kwargs: Any) -> None:
         if reward_fn is not None and not callable(reward_fn):
@@ -653,6 +685,17 @@ class JointDroneEnv(gym.Env):
     def state(self) -> np.ndarray:
         """``[2, 4]`` float64 positions and velocities."""
         return self.arena.state()
+
+    # ---- the solver's joint-env protocol (dicrl_torch.solvers.sac) ----------------
+    def obs_from_states(self, states: Any) -> np.ndarray:
+        """The joint observations ``[..., 20]`` of joint states ``[..., 2, 4]``
+        (:func:`joint_obs_from_states`)."""
+        return joint_obs_from_states(states)
+
+    def set_rng(self, rng: np.random.Generator) -> None:
+        """Draw the rest of this episode (its noise) and the unseeded resets after it
+        from ``rng``: the arena's stream."""
+        self.arena._rng = rng
 
     def set_constraint_overlay(self, cells: Any) -> None:
         """See :meth:`DroneArena.set_constraint_overlay`."""

@@ -9,6 +9,13 @@ The wrapper knows nothing of a particular game: it is what lets D-ICRL run on a
 third-party game (issue 27; the first is mpe2's ``simple_spread``,
 :mod:`dicrl_torch.envs.mpe`). A discrete-action game is refused before anything runs,
 with the agent, its space and the fix named.
+
+It is also a joint env as the constrained SAC solver drives one (the protocol of
+:mod:`dicrl_torch.solvers.sac`): :attr:`JointAgentEnv.n_agents`, the joint state ``[N,
+d_s]`` in ``info["state"]`` (:attr:`JointAgentEnv.state_shape`, read as
+:func:`~dicrl_torch.demos.continuous.record_demonstrations` reads it), the agents'
+``reached`` / ``violated`` flags, :meth:`JointAgentEnv.obs_from_states` and
+:meth:`JointAgentEnv.set_rng`.
 """
 
 from __future__ import annotations
@@ -20,6 +27,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
+
+from dicrl_torch.envs.parallel import CheckedParallelEnv
 
 StateFn = Callable[[ParallelEnv], Any]
 RewardAggregator = Callable[[Mapping[str, float]], float]
@@ -52,6 +61,18 @@ def _boxes(agents: list[str], space_of: Callable[[str], spaces.Space],
     return found
 
 
+def agent_rows(state: Any, n_agents: int) -> np.ndarray | None:
+    """A joint state as ``[N, d_s]`` float64 rows, one per agent: ``state`` itself when
+    it is ``[N, d_s]``, a flat ``[N * d_s]`` (e.g. PettingZoo MPE's ``state()``, the
+    agents concatenated) cut into ``N`` rows; None when it is neither."""
+    s = np.asarray(state, dtype=np.float64)
+    if s.ndim == 2 and s.shape[0] == n_agents:
+        return s
+    if s.ndim == 1 and s.size % n_agents == 0:
+        return s.reshape(n_agents, -1)
+    return None
+
+
 def _joint_box(boxes: list[spaces.Box]) -> spaces.Box:
     """The concatenation of flattened boxes as one float32 ``Box``."""
     lows, highs = zip(*(_flat_box(b) for b in boxes), strict=True)
@@ -79,7 +100,17 @@ class JointAgentEnv(gym.Env):
       when every agent is done and some were truncated (e.g. the time limit).
     - **info**: ``agent_infos`` (agent → that agent's info of this step, ``{}`` for one
       that was already done), ``agent_rewards`` (agent → reward, for the agents that
-      acted) and ``active`` (``[N]`` bool, agents not yet done after the step).
+      acted) and ``active`` (``[N]`` bool, agents not yet done after the step); and for
+      a solver, ``reached`` and ``violated`` (``[N]`` bool: the agents whose info of
+      this step says so; False where the game reports nothing) and ``state``.
+    - **joint state** (``info["state"]``, also at the reset; :attr:`state_shape` ``(N,
+      d_s)``): with ``use_state`` ``env.state()`` as ``[N, d_s]`` rows (a flat ``[N
+      d_s]`` cut per agent), else the agents' (last) observations, each flattened,
+      stacked. That is how :func:`~dicrl_torch.demos.continuous.record_demonstrations`
+      reads a joint state, so demonstrations recorded from the same game with the same
+      ``use_state`` hold the states a solver's rollouts see. :attr:`state_shape` is
+      None (and ``info`` has no ``state``) when neither is possible (agents' widths
+      differ).
 
     Seeding passes through: ``reset(seed=s)`` seeds this env's ``np_random`` and resets
     the wrapped env with ``seed=s``; ``reset()`` without a seed continues the wrapped
@@ -93,6 +124,9 @@ class JointAgentEnv(gym.Env):
         observation_space: the joint observation's ``Box`` for a callable (required)
             or to replace ``env.state_space`` for ``"state"``; ignored for ``"agents"``.
         reward_fn: aggregates the per-agent rewards dict into the joint reward.
+        use_state: the joint state from ``env.state()`` (True), from the observations
+            (False), or (None) from ``env.state()`` when the env has a ``Box``
+            ``state_space`` that splits into ``N`` rows, else from the observations.
 
     Raises:
         TypeError: ``env`` is not a PettingZoo ``ParallelEnv``.
@@ -107,6 +141,7 @@ class JointAgentEnv(gym.Env):
         observation: str | StateFn = "agents",
         observation_space: spaces.Box | None = None,
         reward_fn: RewardAggregator | None = None,
+        use_state: bool | None = None,
     ) -> None:
         if not isinstance(env, ParallelEnv):
             raise TypeError(
@@ -165,6 +200,15 @@ class JointAgentEnv(gym.Env):
             raise ValueError(f"reward_fn must be callable (dict of per-agent rewards) -> "
                              f"float or None, got {type(reward_fn).__name__}.")
         self.reward_fn: RewardAggregator = reward_fn or _sum_rewards
+        self.use_state, self.state_shape = self._joint_state_layout(use_state)
+        self.n_agents: int = len(agents)
+        # The observation is the flattened joint state exactly when both read the same
+        # thing: env.state() for observation='state', the agents' observations for
+        # 'agents'. Then obs_from_states can rebuild observations from recorded states.
+        self._obs_is_state = self.state_shape is not None and (
+            (observation == "state" and self.use_state)
+            or (observation == "agents" and not self.use_state))
+        self._observation_mode = observation if isinstance(observation, str) else "state_fn"
         self.metadata = dict(getattr(env, "metadata", {}) or {})
         self.render_mode = getattr(env, "render_mode", None)
         self._last_obs: dict[str, np.ndarray] = {}
@@ -172,6 +216,62 @@ class JointAgentEnv(gym.Env):
         self._started = False
 
     # ---- helpers ------------------------------------------------------------------
+    def _joint_state_layout(self, use_state: bool | None
+                            ) -> tuple[bool, tuple[int, int] | None]:
+        """``(use_state, state_shape)`` for the constructor's ``use_state``."""
+        env, n, name = self.env, len(self.agent_order), _env_name(self.env)
+        if use_state is not None and not isinstance(use_state, bool):
+            raise ValueError(f"use_state must be True, False or None, got {use_state!r}.")
+        space = getattr(env, "state_space", None)
+        rows = None
+        if callable(getattr(env, "state", None)) and isinstance(space, spaces.Box):
+            rows = agent_rows(np.zeros(space.shape), n)
+        if use_state and rows is None:
+            raise ValueError(
+                f"use_state=True needs env.state() and a Box env.state_space of shape [N, "
+                f"d_s] or [N * d_s] for N={n} agents; {name} has state_space {space!r}. "
+                f"Pass use_state=False to use the stacked observations.")
+        if use_state or (use_state is None and rows is not None):
+            return True, rows.shape
+        sizes = set()
+        for agent in self.agent_order:
+            box = env.observation_space(agent)
+            sizes.add(int(np.prod(box.shape)) if isinstance(box, spaces.Box) else -1)
+        if len(sizes) == 1 and -1 not in sizes:
+            return False, (n, sizes.pop())
+        return False, None  # no joint state: the agents' observations differ in width
+
+    def _joint_state(self) -> np.ndarray:
+        """``[N, d_s]`` float64 joint state (class docstring)."""
+        if self.use_state:
+            rows = agent_rows(self.env.state(), self.n_agents)
+            if rows is None or rows.shape != self.state_shape:
+                raise ValueError(f"{_env_name(self.env)}.state() returned shape "
+                                 f"{np.shape(self.env.state())}, not its state_space's "
+                                 f"{list(self.state_shape)} rows; fix the env's state_space.")
+            return rows
+        missing = [a for a in self.agent_order if a not in self._last_obs]
+        if missing:
+            raise ValueError(f"{_env_name(self.env)} gave no observation for {missing}; a "
+                             f"joint state of observations needs every agent's (or pass "
+                             f"use_state=True).")
+        return np.stack([np.asarray(self._last_obs[a], dtype=np.float64).ravel()
+                         for a in self.agent_order])
+
+    def _agent_flags(self, infos: Mapping[str, Any], key: str) -> np.ndarray:
+        """``[N]`` bool: the agents whose info holds a true ``key``."""
+        return np.array([bool((infos.get(a) or {}).get(key, False)) for a in self.agent_order])
+
+    def _info(self, infos: Mapping[str, Any], rewards: Mapping[str, Any]) -> dict[str, Any]:
+        info = {"agent_infos": {a: infos.get(a, {}) for a in self.agent_order},
+                "agent_rewards": {a: float(r) for a, r in rewards.items()},
+                "active": self._active(),
+                "reached": self._agent_flags(infos, "reached"),
+                "violated": self._agent_flags(infos, "violated")}
+        if self.state_shape is not None:
+            info["state"] = self._joint_state()
+        return info
+
     def _joint_obs(self) -> np.ndarray:
         if self._state_fn is not None:
             value = np.asarray(self._state_fn(self.env), dtype=np.float32).ravel()
@@ -218,9 +318,7 @@ class JointAgentEnv(gym.Env):
         live = set(self.env.agents)
         self._ended = {a: "absent" for a in self.agent_order if a not in live}
         self._started = True
-        info = {"agent_infos": {a: infos.get(a, {}) for a in self.agent_order},
-                "agent_rewards": {}, "active": self._active()}
-        return self._joint_obs(), info
+        return self._joint_obs(), self._info(infos, {})
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if not self._started:
@@ -244,15 +342,49 @@ class JointAgentEnv(gym.Env):
                 self._ended.setdefault(agent, "truncated")
         terminated = over and all(k in ("terminated", "absent") for k in self._ended.values())
         truncated = over and not terminated
-        info = {"agent_infos": {a: infos.get(a, {}) for a in self.agent_order},
-                "agent_rewards": {a: float(r) for a, r in rewards.items()},
-                "active": self._active()}
         reward = float(self.reward_fn(rewards))
-        return self._joint_obs(), reward, terminated, truncated, info
+        return self._joint_obs(), reward, terminated, truncated, self._info(infos, rewards)
 
     def state(self) -> np.ndarray:
         """The wrapped env's ``state()``."""
         return self.env.state()
+
+    # ---- the solver's joint-env protocol (dicrl_torch.solvers.sac) ----------------
+    def obs_from_states(self, states: Any) -> np.ndarray:
+        """The joint observations ``[..., obs_dim]`` float32 the policy sees in joint
+        states ``[..., N, d_s]`` (e.g. demonstrations' ``states``): their flattening,
+        which is what the observation is when it reads what the state reads
+        (``observation="state"`` with ``use_state``, or ``"agents"`` without).
+
+        Raises:
+            ValueError: the observation is not the flattened state here (the message
+                names the fix), or ``states`` do not have shape ``[..., N, d_s]``.
+        """
+        if not self._obs_is_state:
+            raise ValueError(
+                f"JointAgentEnv(observation={self._observation_mode!r}, use_state="
+                f"{self.use_state}) cannot rebuild its observations from joint states "
+                f"(needed to score or replay demonstrations): the observation is not the "
+                f"flattened state. Wrap the game with observation='state' (and record "
+                f"demonstrations with use_state=True), or observation='agents' with "
+                f"use_state=False (and record with use_state=False).")
+        s = np.asarray(states, dtype=np.float64)
+        if s.ndim < 2 or s.shape[-2:] != tuple(self.state_shape):
+            raise ValueError(f"states must have shape [..., {self.state_shape[0]}, "
+                             f"{self.state_shape[1]}] (agents, state components), got "
+                             f"{list(s.shape)}.")
+        return s.reshape(*s.shape[:-2], -1).astype(np.float32)
+
+    def set_rng(self, rng: np.random.Generator) -> None:
+        """Draw the rest of this episode and the unseeded resets after it from ``rng``
+        (a solver's clone gets streams of its own): the wrapped env's ``set_rng`` if it
+        has one, else the stream of a
+        :class:`~dicrl_torch.envs.parallel.CheckedParallelEnv` (``_rng``). Any other
+        env keeps its own stream (a clone's copy of it goes on as the original's)."""
+        if callable(getattr(self.env, "set_rng", None)):
+            self.env.set_rng(rng)
+        elif isinstance(self.env, CheckedParallelEnv):
+            self.env._rng = rng
 
     def render(self) -> Any:
         return self.env.render()

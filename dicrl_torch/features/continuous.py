@@ -71,7 +71,8 @@ class ContinuousFeatureBasis(nn.Module):
 
     Subclasses set ``self.names`` (one label per feature), ``self.max_value`` and, where
     they fix them, ``self.n_agents`` / ``self.state_dim`` / ``self.action_dim`` (None:
-    any), register their constants as buffers and implement :meth:`compute`.
+    any), register their constants as buffers and implement :meth:`compute`. A feature
+    that belongs to one agent is named ``f"{agent_prefix}{i}/..."`` (:meth:`agent_shares`).
     :meth:`forward` checks the input (float, finite, shape) and that the output has
     width :attr:`dim` and lies in ``[0, max_value]``; :attr:`fix_hint` says in that
     message how to repair a basis whose values leave the range.
@@ -85,6 +86,8 @@ class ContinuousFeatureBasis(nn.Module):
     state_dim: int | None = None
     action_dim: int | None = None
     fix_hint: str = "rescale the basis or raise its max_value"
+    agent_prefix: str = "agent"
+    """Feature names ``f"{agent_prefix}{i}/..."`` are agent ``i``'s own."""
 
     @property
     def dim(self) -> int:
@@ -99,6 +102,33 @@ class ContinuousFeatureBasis(nn.Module):
     def compute(self, states: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         """``[..., N, d_s]`` checked states to ``[..., l]`` features."""
         raise NotImplementedError
+
+    def agent_shares(self, n_agents: int | None = None) -> torch.Tensor:
+        """``[l, N]`` float64: how much of each feature's reward belongs to each agent.
+        A feature named ``f"{agent_prefix}{i}/..."`` is agent ``i``'s alone (a one-hot
+        row); any other (e.g. a proximity, or a cell count of the whole team) is shared
+        equally (``1 / N`` each). Rows sum to 1, so per-agent rewards (a per-agent critic,
+        :mod:`dicrl_torch.solvers.sac.decomposed`) add up to the joint reward.
+
+        Args:
+            n_agents: ``N``; default the basis's own ``n_agents`` (one of the two must be
+                known, and they must agree).
+        """
+        n = self.n_agents if n_agents is None else _positive_int("n_agents", n_agents)
+        if n is None or (self.n_agents is not None and n != self.n_agents):
+            raise ValueError(f"{self.label}: agent_shares needs the number of agents: pass "
+                             f"n_agents (the basis was built for n_agents={self.n_agents}, "
+                             f"asked for {n_agents}).")
+        shares = torch.full((self.dim, n), 1.0 / n, dtype=torch.float64)
+        for j, name in enumerate(self.names):
+            owner = name.split("/", 1)[0].removeprefix(self.agent_prefix)
+            if owner.isdigit():
+                if int(owner) >= n:
+                    raise ValueError(f"{self.label}: feature {name!r} names an agent beyond "
+                                     f"the {n} of the game; rename it.")
+                shares[j] = 0.0
+                shares[j, int(owner)] = 1.0
+        return shares
 
     def forward(self, states: Any, actions: Any = None) -> torch.Tensor:
         """Features of joint states.

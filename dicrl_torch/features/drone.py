@@ -56,26 +56,17 @@ class DroneFeatureBasis(ContinuousFeatureBasis):
     n_agents: int = N_DRONES
     state_dim: int = 4
     action_dim: int = 2
+    agent_prefix: str = "drone"  # drone i's own features are named drone<i>/...
 
     def compute(self, states: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         """``[..., 2, 4]`` checked joint states to ``[..., l]`` features."""
         raise NotImplementedError
 
     def drone_shares(self) -> torch.Tensor:
-        """``[l, N_DRONES]`` float64: how much of each feature's reward belongs to each
-        drone. A feature named ``drone<i>/...`` is drone ``i``'s alone (a one-hot row);
-        any other (the proximity) is shared equally (``1 / N_DRONES`` each). Rows sum to
-        1, so the per-drone rewards of a per-drone critic add up to the joint reward."""
-        shares = torch.full((self.dim, N_DRONES), 1.0 / N_DRONES, dtype=torch.float64)
-        for j, name in enumerate(self.names):
-            owner = name.split("/", 1)[0].removeprefix("drone")
-            if owner.isdigit():
-                if int(owner) >= N_DRONES:
-                    raise ValueError(f"{type(self).__name__}: feature {name!r} names a drone "
-                                     f"beyond the arena's {N_DRONES}.")
-                shares[j] = 0.0
-                shares[j, int(owner)] = 1.0
-        return shares
+        """``[l, N_DRONES]`` float64: :meth:`agent_shares` of the arena's drones (a
+        ``drone<i>/...`` feature is drone ``i``'s alone, the proximity is shared
+        equally)."""
+        return self.agent_shares()
 
 
 def _proximity_indicator(pos: torch.Tensor, radius: float) -> torch.Tensor:

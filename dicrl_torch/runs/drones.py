@@ -31,7 +31,7 @@ from dicrl_torch.algos.greedy import SACGreedyConstraintInference
 from dicrl_torch.algos.models import SACLearnerModel
 from dicrl_torch.demos import partition_demonstrations
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations, save_drone_demonstrations
-from dicrl_torch.envs.drones import render_arena
+from dicrl_torch.envs.drones import render_arena, start_support
 from dicrl_torch.metrics import false_negative_rate, false_positive_rate, learned_constraints
 
 DRONE_BASELINE = "M(C)E-greedy"
@@ -130,7 +130,8 @@ class DroneTask:
         for solver, shard in zip(solvers, shards, strict=True):
             solver.set_demonstrations(shard)  # its own pairs only (solver.demo_fraction)
         return SACLearnerModel(solvers=solvers, timesteps=self.timesteps,
-                               n_eval_episodes=self.n_eval_episodes)
+                               n_eval_episodes=self.n_eval_episodes,
+                               start_states=start_support())
 
     # ------------------------------------------------------------------ metrics
     def _rates(self, mask: np.ndarray) -> dict[str, Any]:
@@ -200,7 +201,8 @@ class DroneTask:
         evaluated last (none for a row taken from a checkpoint)."""
         mask = np.zeros(len(self.true), dtype=bool)
         mask[[self.cost_basis.names.index(n) for n in row["constraints"]]] = True
-        paths, self._paths = self._paths[:9], []
+        # The rollouts' joint states [L+1, 2, 4]: the drones' positions are columns 0-1.
+        paths, self._paths = [p[:, :, :2] for p in self._paths[:9]], []
         return render_arena(trajectories=paths, constraint_cells=mask,
                             title=f"{label}: learned constraints (hatched) and "
                                   f"{len(paths)} rollouts")

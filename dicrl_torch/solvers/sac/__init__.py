@@ -1,4 +1,5 @@
-"""Entropy-regularised SAC-style constrained solver for the drone arena (docs/design.md §5, §7).
+"""Entropy-regularised SAC-style constrained solver for continuous multi-agent games
+(docs/design.md §5, §7).
 
 The inner problem of D-ICRL needs, for ``η = [ω_r, λ]`` and ``ω_c``, the maximum causal
 entropy (MCE) policy of the penalised linear reward
@@ -7,16 +8,63 @@ entropy (MCE) policy of the penalised linear reward
 
 its discounted feature expectations ``μ_r(π) [l_r]`` and ``μ_c(π) [l_c]`` (hence
 ``J_ωc = ω_c · μ_c``), and the discounted log-likelihood of demonstrations under it.
-In the continuous arena there is no exact solver; :class:`SACConstrainedSolver`
-approximates the MCE policy with stable-baselines3 SAC on :class:`JointDroneEnv`
-(both drones as one agent, action ``[4]``), and estimates the expectations from its own
-rollouts.
+In a continuous game there is no exact solver; :class:`SACConstrainedSolver`
+approximates the MCE policy with stable-baselines3 SAC on a *joint env* (all ``N``
+agents as one agent whose action is theirs concatenated), and estimates the
+expectations from its own rollouts.
 
-Design choices, and why:
+The joint-env protocol
+----------------------
+
+The solver builds its envs with ``env_factory(constrained=False)`` (the nominal game it
+trains and evaluates in: a learner knows the nominal dynamics, not the constraints) and
+``env_factory(constrained=True)`` (the true game of ``evaluate(true_game=True)``, for
+metrics). Such an env is a ``gymnasium.Env`` (gymnasium wrappers round it are fine: the
+attributes below are looked up through them) with
+
+- ``action_space``: a flat ``Box`` with finite bounds, the agents' actions concatenated
+  agent-major (``[N d_a]``); SAC's ``[-1, 1]`` actions are mapped onto it. A discrete
+  game is refused (wrap continuous actions instead);
+- ``observation_space``: a ``Box``, what the policy and critics read;
+- ``n_agents``: ``N``, and ``state_shape``: ``(N, d_s)``;
+- ``info["state"]``: the joint state ``[N, d_s]`` (float) after ``reset`` and after
+  every ``step``: what the feature bases read (``φ(s')`` of the state a step ended in);
+- ``info["reached"]`` and ``info["violated"]`` after every ``step``: ``[N]`` bool, the
+  agents that reached their goal / violated a constraint of the game in that step
+  (all False where the game has no such notion); the solver ORs them over an episode
+  (SR: reached and never violated; CVR: violated);
+- ``terminated`` when every agent is done (the final state is then absorbing, below),
+  ``truncated`` at a time limit;
+- ``obs_from_states(states [..., N, d_s]) -> [..., obs_dim]``: the observation the
+  policy would see in a joint state, for scoring and replaying demonstrations
+  (:meth:`SACConstrainedSolver.log_likelihood`, ``set_demonstrations``; only needed
+  there);
+- optionally ``set_rng(rng)``: draw the rest of the episode (its noise) and later
+  unseeded resets from ``rng``, so that a :meth:`~SACConstrainedSolver.clone` 's envs
+  get streams of their own;
+- for an exact :meth:`~SACConstrainedSolver.state_dict`: attributes that are numpy /
+  torch / python data (saved by :func:`~dicrl_torch.solvers.sac.state.object_state_dict`),
+  or ``state_dict()`` / ``load_state_dict()`` methods of its own.
+
+:class:`dicrl_torch.envs.joint.JointAgentEnv` gives all of this for any PettingZoo
+``ParallelEnv`` whose agents have ``Box`` actions (the joint state ``env.state()`` or the
+stacked observations; with ``observation="state"`` its observation is the flattened
+state, so it rebuilds observations of demonstrated states). A game may also implement
+the protocol itself (docs/design.md shows the paper's Table 2 game as one).
+
+Demonstrations are :class:`~dicrl_torch.demos.continuous.ContinuousDemonstrations`
+(``states [m, T+1, N, d_s]``, ``actions [m, T, N d_a]`` per agent, ``lengths [m]``,
+optionally ``agent_lengths [m, N]``: an agent's actions after it left the episode are
+not scored), e.g. from :func:`~dicrl_torch.demos.continuous.record_demonstrations`;
+any object with ``to_continuous()`` is converted first. Their shapes are checked
+against the env's (the message names the field and the fix).
+
+Design choices, and why
+-----------------------
 
 - **No stale rewards.** :class:`FeatureReplayBuffer` stores, per transition, the feature
-  vectors ``φ_r(s') [l_r]``, ``φ_c(s') [l_c]`` (and the next state ``[2, 4]``), never a
-  reward. :meth:`FeatureReplayBuffer.sample` computes the rewards from the weights set
+  vectors ``φ_r(s') [l_r]``, ``φ_c(s') [l_c]`` (and the next state ``[N, d_s]``), never
+  a reward. :meth:`FeatureReplayBuffer.sample` computes the rewards from the weights set
   last by :meth:`FeatureReplayBuffer.set_weights`, so after ``η`` or ``ω_c`` change the
   whole buffer is relabelled at once and the old experience stays valid data.
 - **Fixed temperature.** The MCE model is the soft-Bellman policy at temperature 1
@@ -28,15 +76,15 @@ Design choices, and why:
   :meth:`SACConstrainedSolver.solve` relabels the buffer and *continues* training
   (``reset_num_timesteps=False``: no new warm-up of random actions, the episodes in
   flight go on), which is what makes thousands of inner iterations affordable.
-- **Absorbing termination.** An episode of :class:`JointDroneEnv` ends when no drone
-  flies (all arrived, or frozen in the true game). The grid world lets an expert stay at
-  its goal, earning its features until the horizon; here the final state is treated as
+- **Absorbing termination.** An episode ends (``terminated``) when every agent is done
+  (arrived, or frozen in the true game). The grid world lets an expert stay at its
+  goal, earning its features until the horizon; here the final state is treated as
   absorbing: the terminal transition earns ``φ(s_L) / (1 - γ)``, the discounted value of
-  staying there forever. Without it, a positive reward for being near the door would
-  teach the drones never to arrive (arriving ends the reward stream). Timeouts
-  (``max_steps``) are truncations, bootstrapped by SB3 as usual. The same convention
-  gives the rollout and the demonstration feature sums
-  (:func:`discounted_demo_feature_sums`), so the two are comparable.
+  staying there forever. Without it, a positive reward for being near a goal would
+  teach the agents never to arrive (arriving ends the reward stream). Timeouts are
+  truncations, bootstrapped by SB3 as usual. The same convention gives the rollout
+  and the demonstration feature sums (:func:`discounted_demo_feature_sums`), so the two
+  are comparable.
 - **Features of the next state.** The reward of transition ``(s_t, a_t, s_{t+1})`` is
   that of ``s_{t+1}``, so the action is credited at once; the discounted sums are
   ``Σ_t γ^t φ(s_{t+1})`` (the initial state's features do not depend on the policy).
@@ -57,13 +105,15 @@ The package, by responsibility:
 
 - :mod:`~dicrl_torch.solvers.sac.solver`: :class:`SACConstrainedSolver` (training,
   evaluation, likelihood, clones, exact ``state_dict`` / ``load_state_dict``).
+- :mod:`~dicrl_torch.solvers.sac.protocol`: the checks of the joint-env protocol and
+  of the demonstrations against it.
 - :mod:`~dicrl_torch.solvers.sac.buffer`: :class:`FeatureReplayBuffer` (features stored,
   rewards relabelled on sampling, demonstrations mixed in).
 - :mod:`~dicrl_torch.solvers.sac.solution`: :class:`SACSolution` (rollout estimates).
-- :mod:`~dicrl_torch.solvers.sac.features`: joint observations, the bases' features,
+- :mod:`~dicrl_torch.solvers.sac.features`: the bases' features and agent shares,
   :func:`discounted_demo_feature_sums`, :class:`BoxScaler`.
 - :mod:`~dicrl_torch.solvers.sac.decomposed`: :class:`DecomposedSAC` (one soft-Q column
-  per drone).
+  per agent).
 - :mod:`~dicrl_torch.solvers.sac.randomness` and :mod:`~dicrl_torch.solvers.sac.state`:
   the private random streams and the pickle-free state of SB3's model and envs.
   :mod:`~dicrl_torch.solvers.sac.checks`: argument checks.
@@ -74,11 +124,8 @@ models in :mod:`dicrl_torch.algos.models`.
 
 from dicrl_torch.solvers.sac.buffer import FeatureReplayBuffer
 from dicrl_torch.solvers.sac.decomposed import DecomposedCritic, DecomposedSAC, DecomposedSACPolicy
-from dicrl_torch.solvers.sac.features import (
-    BoxScaler,
-    discounted_demo_feature_sums,
-    joint_obs_from_states,
-)
+from dicrl_torch.solvers.sac.features import BoxScaler, discounted_demo_feature_sums
+from dicrl_torch.solvers.sac.protocol import JointEnvSpec
 from dicrl_torch.solvers.sac.solution import SACSolution
 from dicrl_torch.solvers.sac.solver import STATE_FORMAT, SACConstrainedSolver
 
@@ -89,8 +136,8 @@ __all__ = [
     "DecomposedSAC",
     "DecomposedSACPolicy",
     "FeatureReplayBuffer",
+    "JointEnvSpec",
     "SACConstrainedSolver",
     "SACSolution",
     "discounted_demo_feature_sums",
-    "joint_obs_from_states",
 ]

@@ -6,6 +6,7 @@ See :mod:`dicrl_torch.solvers.sac` ("No stale rewards", "Absorbing termination")
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -16,16 +17,9 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
-from dicrl_torch.demos.drone_demos import DroneDemonstrations
-from dicrl_torch.envs.drones import N_DRONES, joint_obs_to_state
 from dicrl_torch.solvers.sac.checks import _check_fraction, _check_gamma, _weights
-from dicrl_torch.solvers.sac.features import (
-    STATE_SHAPE,
-    _basis_dim,
-    _drone_shares,
-    _features,
-    joint_obs_from_states,
-)
+from dicrl_torch.solvers.sac.features import _agent_shares, _basis_dim, _features
+from dicrl_torch.solvers.sac.protocol import as_continuous, step_fields
 from dicrl_torch.solvers.sac.state import (
     array_of,
     check_optional_array,
@@ -42,16 +36,16 @@ __all__ = ["FeatureReplayBuffer"]
 class FeatureReplayBuffer(ReplayBuffer):
     """SB3 replay buffer that stores features, not rewards, and relabels on sampling.
 
-    Per transition it keeps, besides SB3's fields, ``next_states [2, 4]`` float64 (from
-    ``info["state"]``, or the observation when absent), ``reward_features [l_r]`` and
-    ``cost_features [l_c]`` of the next state, and ``reward_scale``: ``1 / (1 - γ)`` for
-    a terminal transition when ``absorbing`` (see the module docstring), else 1. The
-    reward SB3's ``add`` receives is ignored.
+    Per transition it keeps, besides SB3's fields, ``next_states [N, d_s]`` float64 (the
+    step's ``info["state"]``), ``reward_features [l_r]`` and ``cost_features [l_c]`` of
+    the next state, and ``reward_scale``: ``1 / (1 - γ)`` for a terminal transition when
+    ``absorbing`` (see the package docstring), else 1. The reward SB3's ``add`` receives
+    is ignored.
 
     :meth:`sample` returns rewards ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` from the weights
     of the last :meth:`set_weights`, computed in float64 then cast to float32: ``[B, 1]``,
-    or with ``per_drone`` ``[B, N_DRONES]``, each drone's share of that sum (the bases'
-    ``drone_shares()``; the shared proximity split equally), for a per-drone critic. After
+    or with ``per_agent`` ``[B, N]``, each agent's share of that sum (the bases'
+    ``agent_shares()``; a shared feature split equally), for a per-agent critic. After
     :meth:`set_demonstrations`, a fixed share of every batch is drawn from the learner's
     own demonstrated transitions, relabelled the same way.
 
@@ -65,8 +59,9 @@ class FeatureReplayBuffer(ReplayBuffer):
         absorbing: treat terminal states as absorbing.
         feature_dtype: storage dtype of the features (float32 halves the memory of
             float64; indicator features are exact either way).
-        per_drone: sample one reward column per drone (the bases must give
-            ``drone_shares()``).
+        state_shape: ``(N, d_s)`` of the joint states in the env's infos.
+        per_agent: sample one reward column per agent (the bases must give
+            ``agent_shares()``).
     """
 
     def __init__(
@@ -84,7 +79,8 @@ class FeatureReplayBuffer(ReplayBuffer):
         gamma: float,
         absorbing: bool = True,
         feature_dtype: Any = np.float32,
-        per_drone: bool = False,
+        state_shape: tuple[int, int],
+        per_agent: bool = False,
     ) -> None:
         if optimize_memory_usage:
             raise ValueError(
@@ -98,16 +94,18 @@ class FeatureReplayBuffer(ReplayBuffer):
         self.l_c = _basis_dim(cost_basis, "cost_basis")
         self.gamma = _check_gamma(gamma)
         self.absorbing = bool(absorbing)
-        if not isinstance(per_drone, bool):
-            raise ValueError(f"per_drone must be a bool, got {per_drone!r}.")
+        if not isinstance(per_agent, bool):
+            raise ValueError(f"per_agent must be a bool, got {per_agent!r}.")
+        self.state_shape = tuple(int(d) for d in state_shape)
+        n_agents = self.state_shape[0]
         # [l, G] share of each feature's reward per reward column (G = 1: the joint reward).
         self.shares: tuple[np.ndarray, np.ndarray] | None = None
-        if per_drone:
-            self.shares = (_drone_shares(reward_basis, "reward_basis"),
-                           _drone_shares(cost_basis, "cost_basis"))
-        self.n_rewards = N_DRONES if per_drone else 1
+        if per_agent:
+            self.shares = (_agent_shares(reward_basis, "reward_basis", n_agents),
+                           _agent_shares(cost_basis, "cost_basis", n_agents))
+        self.n_rewards = n_agents if per_agent else 1
         shape = (self.buffer_size, self.n_envs)
-        self.next_states = np.zeros((*shape, *STATE_SHAPE), dtype=np.float64)
+        self.next_states = np.zeros((*shape, *self.state_shape), dtype=np.float64)
         self.reward_features = np.zeros((*shape, self.l_r), dtype=feature_dtype)
         self.cost_features = np.zeros((*shape, self.l_c), dtype=feature_dtype)
         self.reward_scale = np.ones(shape, dtype=np.float64)
@@ -137,11 +135,8 @@ class FeatureReplayBuffer(ReplayBuffer):
         """Store a step of all ``n_envs`` envs with the features of the next states."""
         # SB3 replaces next_obs of done envs by their terminal observation but leaves
         # infos alone: info["state"] is the (float64) state the step ended in.
-        states = joint_obs_to_state(np.asarray(next_obs, dtype=np.float64))
-        states = np.array(states)
-        for i, info in enumerate(infos):
-            if info.get("state") is not None:
-                states[i] = info["state"]
+        states = np.array([step_fields(info, ("state",))[0] for info in infos],
+                          dtype=np.float64)
         pos = self.pos
         self.next_states[pos] = states
         self.reward_features[pos] = _features(self.reward_basis, states)
@@ -164,7 +159,7 @@ class FeatureReplayBuffer(ReplayBuffer):
 
     def _relabel(self, phi_r: np.ndarray, phi_c: np.ndarray, scale: np.ndarray) -> np.ndarray:
         """``[B, n_rewards]`` float64 ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` under the
-        current weights, split into per-drone shares when ``per_drone``."""
+        current weights, split into per-agent shares when ``per_agent``."""
         if self.reward_weights is None:
             raise RuntimeError(
                 "FeatureReplayBuffer has no weights yet; call set_weights(reward_weights, "
@@ -179,36 +174,49 @@ class FeatureReplayBuffer(ReplayBuffer):
              + self.multiplier * (phi_c @ (self.cost_weights[:, None] * share_c)))
         return scale[:, None] * r
 
-    def set_demonstrations(self, demos: DroneDemonstrations | None, fraction: float) -> None:
+    def set_demonstrations(self, demos: Any, fraction: float,
+                           obs_from_states: Callable[[np.ndarray], np.ndarray] | None = None,
+                           to_policy: Callable[[np.ndarray], np.ndarray] | None = None
+                           ) -> None:
         """Mix demonstrated transitions into every batch (``None`` removes them).
 
-        Each pair of length ``L`` gives ``L`` transitions ``(o_t, a_t, o_{t+1})``, the
-        last one terminal (both drones done; absorbing when the buffer is), with the
+        Each episode of length ``L`` gives ``L`` transitions ``(o_t, a_t, o_{t+1})``, the
+        last one terminal (every agent done; absorbing when the buffer is), with the
         features of ``s_{t+1}``: the same record as an env transition, so the same
         relabelling applies. SAC is off-policy, so this leaves the soft-optimal policy
         it converges to unchanged; it shows the critic routes round the obstacles that
-        its own exploration, starting from a policy that flies straight, rarely finds.
+        its own exploration, starting from a policy that heads straight for the goal,
+        rarely finds.
 
         Args:
-            demos: the learner's own pairs (never another learner's).
+            demos: the learner's own episodes (never another learner's):
+                :class:`~dicrl_torch.demos.continuous.ContinuousDemonstrations` (or with
+                ``to_continuous()``) of the env's shapes (the solver checks them).
             fraction: share of each batch drawn from them, in ``[0, 1)``.
+            obs_from_states: the env's observations ``[..., obs_dim]`` of joint states
+                ``[..., N, d_s]`` (the joint env's ``obs_from_states``).
+            to_policy: maps env actions ``[n, d]`` onto SAC's ``[-1, 1]^d`` (as SB3 stores
+                actions); None: they are already there.
         """
         fraction = _check_fraction(fraction, "fraction")
         if demos is None:
             self._demo, self.demo_fraction = None, 0.0
             return
-        if not isinstance(demos, DroneDemonstrations):
-            raise ValueError(f"demos must be DroneDemonstrations, got {type(demos).__name__}.")
+        demos = as_continuous(demos)
+        if obs_from_states is None:
+            raise ValueError("set_demonstrations needs obs_from_states (the joint env's), to "
+                             "give the demonstrated transitions the env's observations.")
         lengths = np.asarray(demos.lengths)
-        pair = np.repeat(np.arange(demos.n_pairs), lengths)  # [n] transition -> pair
-        t = np.concatenate([np.arange(n) for n in lengths])  # [n] its step in the pair
-        states, next_states = demos.states[pair, t], demos.states[pair, t + 1]
-        terminal = t == lengths[pair] - 1
+        episode = np.repeat(np.arange(demos.n_episodes), lengths)  # [n] transition -> episode
+        t = np.concatenate([np.arange(n) for n in lengths])  # [n] its step in the episode
+        states, next_states = demos.states[episode, t], demos.states[episode, t + 1]
+        terminal = t == lengths[episode] - 1
+        actions = demos.actions[episode, t].reshape(len(t), -1)  # [n, N d_a] agent-major
         self._demo = {
-            "obs": joint_obs_from_states(states),
-            "next_obs": joint_obs_from_states(next_states),
-            "actions": np.asarray(demos.actions[pair, t], dtype=np.float32).reshape(
-                len(t), 2 * N_DRONES),
+            "obs": obs_from_states(states),
+            "next_obs": obs_from_states(next_states),
+            "actions": np.asarray(actions if to_policy is None else to_policy(actions),
+                                  dtype=np.float32),
             "dones": terminal.astype(np.float32),
             "phi_r": _features(self.reward_basis, next_states),
             "phi_c": _features(self.cost_basis, next_states),

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from dicrl_torch.solvers.sac.checks import _weights
-from dicrl_torch.solvers.sac.features import _drone_shares
+from dicrl_torch.solvers.sac.features import _agent_shares
 
 if TYPE_CHECKING:
     from dicrl_torch.solvers.sac.solver import SACConstrainedSolver
@@ -35,12 +35,14 @@ class SACSolution:
         reward_sums: ``[n, l_r]`` float64 per-episode discounted ``Σ_t γ^t φ_r(s_{t+1})``.
         cost_sums: ``[n, l_c]`` float64, the same for ``φ_c``.
         lengths: ``[n]`` int64 episode lengths.
-        reached: ``[n, 2]`` bool, drone reached its door in the episode.
-        violated: ``[n, 2]`` bool, drone violated a true constraint in the episode.
+        reached: ``[n, N]`` bool, agent reached its goal in the episode (the env's
+            ``info["reached"]``).
+        violated: ``[n, N]`` bool, agent violated a constraint of the game in the
+            episode (``info["violated"]``).
         eta: ``[l_r + 1]`` float64 ``[ω_r, λ]`` the policy was trained for (or None).
         cost_weights: ``[l_c]`` float64 ``ω_c`` (or None).
         timesteps: env steps the SAC model had taken when evaluated.
-        paths: per episode the drones' positions ``[L+1, 2, 2]`` (with
+        paths: per episode the joint states ``[L+1, N, d_s]`` (with
             ``evaluate(trajectories=True)``), else None.
     """
 
@@ -106,28 +108,30 @@ class SACSolution:
 
     def success_rate_under(self, constraints: Any) -> float:
         """SR in the game whose constraints are ``constraints`` (``[l_c]`` bool over the
-        cost features, e.g. a learner's learned set): the fraction of drones that reached
-        their door without accruing any of those features that are theirs (per
-        ``drone_shares()``; a shared one, the proximity, counts for both). Computed from
-        this solution's rollouts (the solver's game: nominal by default)."""
+        cost features, e.g. a learner's learned set): the fraction of agents that reached
+        their goal without accruing any of those features that are theirs (per the cost
+        basis's ``agent_shares()``; a shared one, e.g. a proximity, counts for every
+        agent). Computed from this solution's rollouts (the solver's game: nominal by
+        default)."""
         if self.solver is None:
             raise ValueError("This solution has no solver (its cost basis is needed).")
         mask = torch.as_tensor(np.asarray(constraints, dtype=bool).reshape(-1))
         if mask.shape != (self.cost_sums.shape[1],):
             raise ValueError(f"constraints must be [{self.cost_sums.shape[1]}] bool, got "
                              f"shape {tuple(mask.shape)}.")
-        owned = torch.as_tensor(_drone_shares(self.solver.cost_basis, "cost_basis") > 0)
+        owned = torch.as_tensor(_agent_shares(self.solver.cost_basis, "cost_basis",
+                                              self.reached.shape[1]) > 0)
         entered = (self.cost_sums > 0)[:, :, None] & (mask[:, None] & owned)[None]
         return float((self.reached & ~entered.any(1)).double().mean())
 
     @property
     def success_rate(self) -> float:
-        """Fraction of drones that reached their door without a violation (SR)."""
+        """Fraction of agents that reached their goal without a violation (SR)."""
         return float((self.reached & ~self.violated).double().mean())
 
     @property
     def violation_rate(self) -> float:
-        """Mean over episodes of the fraction of drones that violated (CVR)."""
+        """Mean over episodes of the fraction of agents that violated (CVR)."""
         return float(self.violated.double().mean())
 
     def feature_expectation(self, features: Any) -> torch.Tensor:

@@ -8,10 +8,11 @@ from __future__ import annotations
 import contextlib
 import copy
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 from stable_baselines3 import SAC
@@ -20,8 +21,6 @@ from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import DummyVecEnv
 from torch import nn
 
-from dicrl_torch.demos.drone_demos import DroneDemonstrations
-from dicrl_torch.envs.drones import N_DRONES, JointDroneEnv, joint_obs_to_state
 from dicrl_torch.features.base import EnvKind
 from dicrl_torch.solvers.sac.buffer import FeatureReplayBuffer
 from dicrl_torch.solvers.sac.checks import (
@@ -31,12 +30,13 @@ from dicrl_torch.solvers.sac.checks import (
     _weights,
 )
 from dicrl_torch.solvers.sac.decomposed import DecomposedSAC
-from dicrl_torch.solvers.sac.features import (
-    STATE_SHAPE,
-    BoxScaler,
-    _basis_dim,
-    _features,
-    joint_obs_from_states,
+from dicrl_torch.solvers.sac.features import BoxScaler, _basis_dim, _features
+from dicrl_torch.solvers.sac.protocol import (
+    as_continuous,
+    check_joint_env,
+    make_joint_env,
+    protocol_attr,
+    step_fields,
 )
 from dicrl_torch.solvers.sac.randomness import (
     capture_global_rng,
@@ -63,24 +63,36 @@ from dicrl_torch.solvers.sac.state import (
 
 __all__ = ["STATE_FORMAT", "SACConstrainedSolver"]
 
-STATE_FORMAT = "dicrl_torch.SACConstrainedSolver/1"
+STATE_FORMAT = "dicrl_torch.SACConstrainedSolver/2"
 """Tag of :meth:`SACConstrainedSolver.state_dict`'s layout."""
 
 
 class SACConstrainedSolver:
     """Entropy-regularised SAC on ``r = ω_r·φ_r + λ ω_c·φ_c``, warm-started across calls.
 
-    Example::
+    Example (any PettingZoo ``ParallelEnv`` with ``Box`` actions)::
 
-        solver = SACConstrainedSolver(reward_basis=DoorLocationRewardBasis(),
-                                      cost_basis=CellOccupancyCostBasis(), seed=0)
+        def game(constrained):
+            return JointAgentEnv(ConstrainedSpread(constrained=constrained),
+                                 observation="state")
+        solver = SACConstrainedSolver(
+            env_factory=game, reward_basis=RandomFourierBasis(n_agents=2, state_dim=4),
+            cost_basis=PositionCellBasis(n_agents=2, bounds=..., proximity_radius=0.4),
+            seed=0)
         sol = solver.solve(eta, cost_weights, timesteps=20_000)  # eta = [ω_r, λ]
         grad = torch.cat([sol.mu_r - mu_hat, ...]); ll = solver.log_likelihood(demos)
 
     Args:
-        reward_basis: drone basis of ``φ_r`` (``l_r`` features), e.g.
-            :class:`~dicrl_torch.features.drone.DoorLocationRewardBasis`.
-        cost_basis: drone basis of ``φ_c`` (``l_c``), e.g. ``CellOccupancyCostBasis``.
+        env_factory: builds the joint env (the protocol of the package docstring):
+            ``env_factory(constrained=False)`` the nominal game the solver trains and
+            evaluates in (the learner knows the nominal dynamics, not the constraints),
+            ``env_factory(constrained=True)`` the true game of
+            ``evaluate(true_game=True)``. E.g. ``functools.partial(SomeJointEnv,
+            max_steps=300)``, or a function wrapping a PettingZoo game in
+            :class:`~dicrl_torch.envs.joint.JointAgentEnv`.
+        reward_basis: basis of ``φ_r`` (``l_r`` features) over the env's joint states
+            ``[..., N, d_s]``, e.g. a :mod:`dicrl_torch.features.continuous` basis.
+        cost_basis: basis of ``φ_c`` (``l_c`` features), likewise.
         seed: the solver's only source of randomness (networks, env starts and noise,
             buffer sampling, exploration, evaluation).
         n_envs: parallel envs of the ``DummyVecEnv`` that SAC collects from.
@@ -90,9 +102,6 @@ class SACConstrainedSolver:
             ``η``; see the module docstring). Must be a positive number.
         absorbing: treat terminal states as absorbing (module docstring).
         n_eval_episodes: rollouts per :meth:`evaluate` (default of :meth:`solve`).
-        env_kwargs: forwarded to :class:`JointDroneEnv` / ``DroneArena``; the default
-            game is the *nominal* one (``constrained=False``): the learner knows the
-            nominal dynamics, not the constraints.
         learning_rate, buffer_size, batch_size, learning_starts, tau, train_freq,
             gradient_steps: SAC's (``buffer_size`` counts transitions over all envs).
         net_arch: hidden layers of actor and critics.
@@ -103,19 +112,20 @@ class SACConstrainedSolver:
             :meth:`set_demonstrations` (none are by default), in ``[0, 1)``.
         scale_observations: feed actor and critics observations mapped onto ``[-1, 1]``
             by the observation space's bounds (:class:`BoxScaler`).
-        per_drone_critics: critics with one soft-Q column per drone, each trained on that
-            drone's share of the reward (:mod:`~dicrl_torch.solvers.sac.decomposed`; the
-            fixed point is plain SAC's).
+        per_agent_critics: critics with one soft-Q column per agent, each trained on that
+            agent's share of the reward (the bases' ``agent_shares()``;
+            :mod:`~dicrl_torch.solvers.sac.decomposed`; the fixed point is plain SAC's).
         sac_kwargs: further keyword arguments for ``stable_baselines3.SAC``.
     """
 
-    # The kind of environment the solver serves: "continuous", the drone arena (as its
-    # bases, features.base.Basis). experiments/config_checks.py refuses it elsewhere.
+    # The kind of environment the solver serves: "continuous" (as its bases,
+    # features.base.Basis). experiments/config_checks.py refuses it elsewhere.
     env_kind: EnvKind = "continuous"
 
     def __init__(
         self,
         *,
+        env_factory: Callable[..., gym.Env],
         reward_basis: nn.Module,
         cost_basis: nn.Module,
         seed: int,
@@ -125,7 +135,6 @@ class SACConstrainedSolver:
         ent_coef: float = 1.0,
         absorbing: bool = True,
         n_eval_episodes: int = 10,
-        env_kwargs: dict[str, Any] | None = None,
         learning_rate: float = 3e-4,
         buffer_size: int = 100_000,
         batch_size: int = 256,
@@ -138,7 +147,7 @@ class SACConstrainedSolver:
         feature_dtype: Any = np.float32,
         demo_fraction: float = 0.0,
         scale_observations: bool = False,
-        per_drone_critics: bool = False,
+        per_agent_critics: bool = False,
         sac_kwargs: dict[str, Any] | None = None,
     ) -> None:
         self.demo_fraction = _check_fraction(demo_fraction, "demo_fraction")
@@ -172,22 +181,23 @@ class SACConstrainedSolver:
         self.absorbing = bool(absorbing)
         self.n_eval_episodes = int(n_eval_episodes)
         self.action_margin = float(action_margin)
-        self.env_kwargs = {"constrained": False, **(env_kwargs or {})}
-        if "reward_fn" in self.env_kwargs:
-            raise ValueError(
-                "env_kwargs must not set reward_fn: the solver's buffer computes rewards "
-                "from features; drop the reward_fn key."
-            )
-        # Validate the env kwargs now, with a clear error, rather than inside SB3.
-        probe = JointDroneEnv(**self.env_kwargs)
-        self._obs_low, self._obs_high = probe.observation_space.low, probe.observation_space.high
-        probe.close()
+        if not callable(env_factory):
+            raise ValueError(f"env_factory must be callable as env_factory(constrained=...) "
+                             f"-> gymnasium.Env, got {type(env_factory).__name__}.")
+        self.env_factory = env_factory
+        # Check the env against the protocol now, with a clear error, rather than inside
+        # SB3; the probe stays as the reference of the env's spaces and its
+        # observations of states (obs_from_states, for demonstrations).
+        self._env = make_joint_env(env_factory, constrained=False)
+        self.spec = check_joint_env(self._env)
+        self._obs_low = self.spec.observation_space.low
+        self._obs_high = self.spec.observation_space.high
 
         self._rng_state: tuple[Any, ...] | None = None
         self._eval_rng = np.random.default_rng([self.seed, 1])
         self._eval_gen = torch.Generator(device=self.device)
         self._eval_gen.manual_seed(int(np.random.default_rng([self.seed, 2]).integers(2**62)))
-        self._eval_envs: dict[bool, list[JointDroneEnv]] = {False: [], True: []}
+        self._eval_envs: dict[bool, list[gym.Env]] = {False: [], True: []}
 
         kwargs = dict(sac_kwargs or {})
         for key in ("ent_coef", "replay_buffer_class", "seed", "gamma"):
@@ -205,18 +215,19 @@ class SACConstrainedSolver:
                 raise ValueError("scale_observations=True sets the features extractor; drop "
                                  "features_extractor_class from sac_kwargs['policy_kwargs'].")
             policy_kwargs["features_extractor_class"] = BoxScaler
-        if not isinstance(per_drone_critics, bool):
-            raise ValueError(f"per_drone_critics must be a bool, got {per_drone_critics!r}.")
-        self.per_drone_critics = per_drone_critics
+        if not isinstance(per_agent_critics, bool):
+            raise ValueError(f"per_agent_critics must be a bool, got {per_agent_critics!r}.")
+        self.per_agent_critics = per_agent_critics
         algorithm = SAC
-        if per_drone_critics:
+        if per_agent_critics:
             algorithm = DecomposedSAC
-            policy_kwargs["n_rewards"] = N_DRONES
+            policy_kwargs["n_rewards"] = self.spec.n_agents
         # Even building the vec env draws from the global numpy stream (SB3): all of it
         # happens on the solver's private streams.
         with self._private_rng():
-            self.vec_env = make_vec_env(JointDroneEnv, n_envs=self.n_envs,
-                                        env_kwargs=self.env_kwargs, vec_env_cls=DummyVecEnv)
+            self.vec_env = make_vec_env(env_factory, n_envs=self.n_envs,
+                                        env_kwargs={"constrained": False},
+                                        vec_env_cls=DummyVecEnv)
             self.vec_env.seed(self.seed)  # used at the first reset, inside learn()
             self.model = algorithm(
                 "MlpPolicy", self.vec_env, learning_rate=learning_rate,
@@ -227,7 +238,8 @@ class SACConstrainedSolver:
                 replay_buffer_kwargs={"reward_basis": reward_basis, "cost_basis": cost_basis,
                                       "gamma": self.gamma, "absorbing": self.absorbing,
                                       "feature_dtype": feature_dtype,
-                                      "per_drone": per_drone_critics},
+                                      "state_shape": self.spec.state_shape,
+                                      "per_agent": per_agent_critics},
                 policy_kwargs=policy_kwargs, device=self.device, seed=None, verbose=0,
                 **kwargs,
             )
@@ -269,9 +281,12 @@ class SACConstrainedSolver:
         twin._eval_rng = np.random.default_rng([twin.seed, 1])
         twin._eval_gen.manual_seed(int(np.random.default_rng([twin.seed, 2]).integers(2**62)))
         twin.model.action_space.seed(twin.seed)
-        # The episodes in flight go on, on streams of their own (not the original's).
+        # The episodes in flight go on, on streams of their own (not the original's),
+        # where the env can take one (the protocol's set_rng).
         for k, env in enumerate(twin.vec_env.envs):
-            env.unwrapped.arena._rng = np.random.default_rng([twin.seed, 3, k])
+            set_rng = protocol_attr(env, "set_rng")
+            if callable(set_rng):
+                set_rng(np.random.default_rng([twin.seed, 3, k]))
         return twin
 
     # ---- state --------------------------------------------------------------------
@@ -285,11 +300,11 @@ class SACConstrainedSolver:
             "reward_features": self.l_r, "cost_features": self.l_c, "n_envs": self.n_envs,
             "buffer_size": int(self.replay_buffer.buffer_size), "gamma": self.gamma,
             "ent_coef": self.ent_coef, "absorbing": self.absorbing,
-            "per_drone_critics": self.per_drone_critics,
+            "per_agent_critics": self.per_agent_critics,
             "scale_observations": self.scale_observations, "device": self.device.type,
             "demo_fraction": self.demo_fraction, "action_margin": self.action_margin,
             "n_eval_episodes": self.n_eval_episodes,
-            "env_kwargs": repr(sorted(self.env_kwargs.items())),
+            "env": self.spec.describe(),
             "learning_rate": float(lr) if isinstance(lr, int | float)
             else getattr(lr, "__qualname__", type(lr).__name__),
             "batch_size": int(m.batch_size), "learning_starts": int(m.learning_starts),
@@ -314,9 +329,11 @@ class SACConstrainedSolver:
         ``_last_obs``, ``_last_original_obs``, ``_last_episode_starts``, the episode
         statistics); the replay buffer (its filled rows, ``pos``, ``full``, the relabel
         weights, the demonstrated transitions and their share); and the training envs
-        in their current episodes (arena state, noise stream, step count, Monitor
-        records, the seeds of the next reset). Load it with :meth:`load_state_dict` into
-        a solver built with the same arguments.
+        in their current episodes (the game's state, noise stream and step count,
+        Monitor records, the seeds of the next reset; any env through
+        :func:`~dicrl_torch.solvers.sac.state.object_state_dict` unless it saves
+        itself). Load it with :meth:`load_state_dict` into a solver built with the same
+        arguments.
         """
         return {
             "format": STATE_FORMAT,
@@ -336,8 +353,8 @@ class SACConstrainedSolver:
     def check_state(self, sd: dict[str, Any]) -> None:
         """Raise a ValueError naming the mismatch unless :meth:`load_state_dict` can load
         ``sd`` (a :meth:`state_dict` of a solver built with the same arguments: basis
-        widths, ``n_envs``, buffer size, network shapes, discount, ...); changes
-        nothing."""
+        widths, ``n_envs``, buffer size, network shapes, discount, the env's class and
+        spaces, ...); changes nothing."""
         if not isinstance(sd, dict) or sd.get("format") != STATE_FORMAT:
             found = sd.get("format") if isinstance(sd, dict) else type(sd).__name__
             raise ValueError(f"Not a SACConstrainedSolver state (format {found!r}, expected "
@@ -406,12 +423,33 @@ class SACConstrainedSolver:
         self.replay_buffer.set_weights(eta[:-1], eta[-1], cost_weights)
         self.eta, self.cost_weights = eta, cost_weights
 
-    def set_demonstrations(self, demos: DroneDemonstrations | None) -> None:
+    def set_demonstrations(self, demos: Any) -> None:
         """Let ``demo_fraction`` of every SAC batch come from ``demos``' transitions,
         relabelled with the current weights like the rest (see
         :meth:`FeatureReplayBuffer.set_demonstrations`). Give a learner only its own
-        pairs; ``None`` removes them."""
-        self.replay_buffer.set_demonstrations(demos, self.demo_fraction)
+        episodes; ``None`` removes them.
+
+        Args:
+            demos: :class:`~dicrl_torch.demos.continuous.ContinuousDemonstrations` of the
+                env's joint states and actions (or demonstrations with
+                ``to_continuous()``), or None.
+        """
+        if demos is not None:
+            demos = as_continuous(demos, self.spec)
+        self.replay_buffer.set_demonstrations(demos, self.demo_fraction,
+                                              self._obs_from_states, self.spec.to_policy)
+
+    def _obs_from_states(self, states: np.ndarray) -> np.ndarray:
+        """The env's joint observations of joint states (the protocol's
+        ``obs_from_states``), or a ValueError naming the fix."""
+        fn = protocol_attr(self._env, "obs_from_states")
+        if not callable(fn):
+            raise ValueError(
+                f"{self.spec.name} has no obs_from_states(states): scoring or replaying "
+                f"demonstrations needs the observation the policy would see in a "
+                f"demonstrated joint state; give the env that method (JointAgentEnv has "
+                f"it; see the joint-env protocol of dicrl_torch.solvers.sac).")
+        return fn(states)
 
     # ---- solving ------------------------------------------------------------------
     def solve(self, eta: Any, cost_weights: Any, timesteps: int, *,
@@ -438,9 +476,9 @@ class SACConstrainedSolver:
         (:meth:`SACSolution.penalised_return`) after any chunk; with ``constraints``, the
         highest :meth:`SACSolution.success_rate_under` them first (ties: the objective).
 
-        SAC's iterates can swing between behaviours from one chunk to the next
-        (docs/drones.md, "Beside the paper, and what decides SR"); this keeps the best one
-        seen, as an evaluation callback that saves the best model does. With
+        SAC's iterates can swing between behaviours from one chunk to the next (seen in
+        the paper's continuous experiment; the Table 2 notes in docs/); this keeps the
+        best one seen, as an evaluation callback that saves the best model does. With
         ``restarts`` > 1 the same is done from this solver's current state by
         ``restarts - 1`` clones as well (:meth:`clone`, seeds drawn from this
         solver's), whose lineages diverge, and the best chunk of any of them is kept: more
@@ -512,7 +550,8 @@ class SACConstrainedSolver:
                 self.model.learn(total_timesteps=int(timesteps), reset_num_timesteps=False)
 
     def _policy_params(self, obs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean and log-std ``[B, 4]`` (pre-squash) of the actor at observations."""
+        """Mean and log-std ``[B, d_a]`` (pre-squash) of the actor at observations
+        ``[B, obs_dim]`` (``d_a`` the joint action's size)."""
         actor = self.model.actor
         with torch.no_grad():
             o = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
@@ -520,13 +559,15 @@ class SACConstrainedSolver:
         return mean, log_std
 
     def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        """Actions ``[B, 4]`` in ``[-1, 1]`` for joint observations ``[B, 20]``, sampled with
-        the solver's evaluation generator (tanh of the mean when ``deterministic``)."""
+        """Joint actions ``[B, d_a]`` in the env's action box for joint observations
+        ``[B, obs_dim]``, sampled with the solver's evaluation generator (tanh of the
+        mean when ``deterministic``), mapped from SAC's ``[-1, 1]`` onto the box (as SB3
+        does; no change for a ``[-1, 1]`` box)."""
         mean, log_std = self._policy_params(obs)
         if deterministic:
-            return torch.tanh(mean).cpu().numpy()
+            return self.spec.to_env(torch.tanh(mean).cpu().numpy())
         eps = torch.randn(mean.shape, generator=self._eval_gen, device=self.device)
-        return torch.tanh(mean + log_std.exp() * eps).cpu().numpy()
+        return self.spec.to_env(torch.tanh(mean + log_std.exp() * eps).cpu().numpy())
 
     def evaluate(self, n_episodes: int | None = None, *, deterministic: bool = False,
                  true_game: bool = False, rng: np.random.Generator | None = None,
@@ -539,44 +580,48 @@ class SACConstrainedSolver:
         Args:
             n_episodes: rollouts (default the solver's ``n_eval_episodes``).
             deterministic: act with ``tanh`` of the mean.
-            true_game: roll out in the game with the TRUE constraints (violators freeze:
-                the metrics SR and CVR), not the solver's nominal game.
+            true_game: roll out in the true game, ``env_factory(constrained=True)``
+                (e.g. violators freeze: the metrics SR and CVR), not the solver's nominal
+                game.
             rng: draws the episodes' env seeds (default the solver's own evaluation
                 stream); pass a fresh seeded generator to compare policies on common
                 random numbers.
-            trajectories: also keep the positions ``[n, L+1, 2, 2]`` (for figures).
+            trajectories: also keep each episode's joint states ``[L+1, N, d_s]`` (for
+                figures).
         """
         n = self.n_eval_episodes if n_episodes is None else n_episodes
         if not _is_int(n) or n < 1:
             raise ValueError(f"n_episodes must be a positive int, got {n!r}.")
         cache = self._eval_envs[bool(true_game)]
-        kwargs = {**self.env_kwargs, "constrained": True} if true_game else self.env_kwargs
         while len(cache) < n:
-            cache.append(JointDroneEnv(**kwargs))
+            cache.append(make_joint_env(self.env_factory, constrained=bool(true_game)))
         envs = cache[:n]
         seeds = (self._eval_rng if rng is None else rng).integers(0, 2**31 - 1, size=n)
-        obs = np.stack([env.reset(seed=int(s))[0] for env, s in zip(envs, seeds, strict=True)])
+        starts = [env.reset(seed=int(s)) for env, s in zip(envs, seeds, strict=True)]
+        obs = np.stack([o for o, _ in starts])
+        n_agents = self.spec.n_agents
         sums_r, sums_c = np.zeros((n, self.l_r)), np.zeros((n, self.l_c))
         lengths = np.zeros(n, dtype=np.int64)
-        reached = np.zeros((n, N_DRONES), dtype=bool)
-        violated = np.zeros((n, N_DRONES), dtype=bool)
+        reached = np.zeros((n, n_agents), dtype=bool)
+        violated = np.zeros((n, n_agents), dtype=bool)
         disc = np.ones(n)
         alive = np.ones(n, dtype=bool)
         bonus = 1.0 / (1.0 - self.gamma) if self.absorbing else 1.0
-        paths = [[joint_obs_to_state(o)[:, :2]] for o in obs] if trajectories else None
+        paths = [[np.array(info["state"])] for _, info in starts] if trajectories else None
         while alive.any():
             idx = np.flatnonzero(alive)
             actions = self.act(obs[idx], deterministic)
-            states = np.zeros((len(idx), *STATE_SHAPE))
+            states = np.zeros((len(idx), *self.spec.state_shape))
             terminal = np.zeros(len(idx), dtype=bool)
             for j, i in enumerate(idx):
                 o, _, term, trunc, info = envs[i].step(actions[j])
-                obs[i], states[j], terminal[j] = o, info["state"], term
-                reached[i] |= info["reached"]
-                violated[i] |= info["violated"]
+                state, agents_reached, agents_violated = step_fields(info)
+                obs[i], states[j], terminal[j] = o, state, term
+                reached[i] |= agents_reached
+                violated[i] |= agents_violated
                 lengths[i] += 1
                 if paths is not None:
-                    paths[i].append(np.array(info["state"])[:, :2])
+                    paths[i].append(np.array(state))
                 if term or trunc:
                     alive[i] = False
             w = disc[idx] * np.where(terminal, bonus, 1.0)
@@ -595,44 +640,53 @@ class SACConstrainedSolver:
         )
 
     # ---- likelihood ---------------------------------------------------------------
-    def log_likelihood(self, demos: DroneDemonstrations, *,
-                       per_pair: bool = False) -> float | torch.Tensor:
-        """Discounted log-likelihood ``Σ_pairs Σ_t γ^t ln π(a_t | s_t)`` of demonstrations.
+    def log_likelihood(self, demos: Any, *,
+                       per_episode: bool = False) -> float | torch.Tensor:
+        """Discounted log-likelihood ``Σ_episodes Σ_t γ^t ln π(a_t | s_t)`` of
+        demonstrations.
 
-        ``π`` is the SAC policy's squashed Gaussian density on ``[-1, 1]^4``: per action
-        dimension ``ln N(atanh a; μ, σ) − ln(1 − a²)``. A drone's dimensions count only
-        while it flies (``t < demos.drone_lengths()``): its later commands are ignored by
-        the env, and as the dimensions are independent, dropping them is the exact
-        marginal. Actions are clipped to ``±(1 − action_margin)``.
+        ``π`` is the SAC policy's squashed Gaussian density on ``[-1, 1]^{N d_a}`` (env
+        actions mapped there first, as SB3 does): per action dimension
+        ``ln N(atanh a; μ, σ) − ln(1 − a²)``. An agent's dimensions count only while it
+        acts (``demos.acting_mask()``: ``t < agent_lengths``): after it left the episode
+        its recorded actions are ignored by the env, and as the dimensions are
+        independent, dropping them is the exact marginal. Actions are clipped to
+        ``±(1 − action_margin)``.
 
         Args:
-            demos: the demonstrations.
-            per_pair: return the ``[m]`` float64 per-pair values instead of their sum.
+            demos: :class:`~dicrl_torch.demos.continuous.ContinuousDemonstrations` of the
+                env's joint states and actions (or demonstrations with
+                ``to_continuous()``).
+            per_episode: return the ``[m]`` float64 per-episode values instead of their
+                sum.
 
         Returns:
-            The sum over pairs (float), or ``[m]`` with ``per_pair``.
+            The sum over episodes (float), or ``[m]`` with ``per_episode``.
+
+        Raises:
+            ValueError: ``demos`` are not demonstrations of this env's shapes (the
+                message names the field and the fix).
         """
-        if not isinstance(demos, DroneDemonstrations):
-            raise ValueError(f"demos must be DroneDemonstrations, got {type(demos).__name__}.")
-        m, T = demos.n_pairs, demos.horizon
-        obs = np.clip(joint_obs_from_states(demos.states[:, :T]), self._obs_low, self._obs_high)
+        demos = as_continuous(demos, self.spec)
+        m, T, n_agents = demos.n_episodes, demos.horizon, demos.n_agents
+        obs = np.clip(self._obs_from_states(demos.states[:, :T]), self._obs_low,
+                      self._obs_high)
         mean, log_std = self._policy_params(obs.reshape(m * T, -1))
         mean, log_std = mean.double().cpu(), log_std.double().cpu()
         bound = 1.0 - self.action_margin
-        a = torch.from_numpy(np.array(demos.actions).reshape(m * T, 2 * N_DRONES))
-        a = a.clamp(-bound, bound)
+        actions = self.spec.to_policy(np.array(demos.actions).reshape(m * T, -1))
+        a = torch.from_numpy(actions).clamp(-bound, bound)  # [m*T, N d_a]
         u = torch.atanh(a)
         logp = (torch.distributions.Normal(mean, log_std.exp()).log_prob(u)
-                - torch.log1p(-a * a))  # [m*T, 4]
-        logp = logp.reshape(m, T, N_DRONES, 2).sum(-1)  # [m, T, 2] per drone
-        flying = torch.arange(T)[None, :, None] < torch.as_tensor(
-            demos.drone_lengths())[:, None, :]  # [m, T, 2]
+                - torch.log1p(-a * a))  # [m*T, N d_a]
+        logp = logp.reshape(m, T, n_agents, -1).sum(-1)  # [m, T, N] per agent
+        acting = torch.from_numpy(demos.acting_mask())  # [m, T, N]
         disc = self.gamma ** torch.arange(T, dtype=torch.float64)
-        per = (torch.where(flying, logp, 0.0).sum(-1) * disc).sum(1)  # [m]
-        return per if per_pair else float(per.sum())
+        per = (torch.where(acting, logp, 0.0).sum(-1) * disc).sum(1)  # [m]
+        return per if per_episode else float(per.sum())
 
     def close(self) -> None:
-        """Close the training and evaluation envs."""
+        """Close the training, evaluation and reference envs."""
         self.vec_env.close()
-        for env in self._eval_envs[False] + self._eval_envs[True]:
+        for env in self._eval_envs[False] + self._eval_envs[True] + [self._env]:
             env.close()

@@ -4,8 +4,9 @@
 scalars, strings, lists, dicts: what ``torch.load(..., weights_only=True)`` reads), all
 that the next ``learn()`` reads: here the networks, optimisers and counters of the SB3
 model (:func:`model_state_dict`) and the training envs in their current episodes
-(:func:`vec_env_state_dict`); the replay buffer saves itself
-(:meth:`FeatureReplayBuffer.state_dict`). SB3's own ``save`` pickles, so it is not used.
+(:func:`vec_env_state_dict`: any env, through :func:`object_state_dict` unless it saves
+itself); the replay buffer saves itself (:meth:`FeatureReplayBuffer.state_dict`). SB3's
+own ``save`` pickles, so it is not used.
 
 Each ``check_*`` function raises a ValueError naming the first field that does not fit
 the object the state is loaded into, before anything is changed; each ``load_*`` sets
@@ -15,6 +16,8 @@ it.
 from __future__ import annotations
 
 import copy
+import functools
+import types
 from collections import deque
 from typing import Any
 
@@ -32,9 +35,13 @@ __all__ = [
     "check_optional_array",
     "check_tensor",
     "check_vec_env_state",
+    "env_state_dict",
+    "load_env_state_dict",
     "load_model_state_dict",
+    "load_object_state_dict",
     "load_vec_env_state_dict",
     "model_state_dict",
+    "object_state_dict",
     "optional_array",
     "optional_tensor",
     "plain",
@@ -198,28 +205,183 @@ def load_model_state_dict(model: OffPolicyAlgorithm, sd: dict[str, Any]) -> None
                                                       sd["action_space_rng"])
 
 
+# ------------------------------------------------------------------ any env's attributes
+# Values that are part of how an object was built, not of its state: not saved, kept
+# as the fresh object has them (bound methods patched in, callbacks, dtypes).
+_CONSTANT_TYPES = (types.FunctionType, types.MethodType, types.BuiltinFunctionType,
+                   types.BuiltinMethodType, types.ModuleType, type, functools.partial,
+                   np.dtype)
+
+
+def object_state_dict(obj: Any) -> dict[str, Any]:
+    """Every attribute of ``obj``, recursively, as plain data: a game of any kind, mid
+    episode, saved without pickling and without code of its own.
+
+    It walks the instance attributes (``vars``) of ``obj`` and of every object they
+    hold, and encodes numpy arrays and scalars, tensors, numpy ``Generator`` s and
+    ``RandomState`` s, lists, tuples and dicts (of plain keys), and python scalars and
+    strings; functions, bound methods, classes, modules and dtypes are construction
+    constants and are kept as the loading object has them. An object reached twice is
+    saved once (a cycle or a shared reference). Anything else raises a ValueError naming
+    its path and the fix.
+
+    :func:`load_object_state_dict` sets the attributes of an object built the same way
+    (the same classes along every path) in place, so references into it stay valid.
+    """
+    return _encode(obj, type(obj).__name__, set())
+
+
+def _encode(value: Any, path: str, seen: set[int]) -> Any:
+    # numpy scalars first: np.float64 is a float, np.int64 is not an int.
+    if isinstance(value, np.generic):
+        return {"kind": "numpy_scalar", "dtype": str(value.dtype), "value": value.item()}
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind not in "biuf":
+            raise ValueError(f"{path}: a numpy array of dtype {value.dtype} cannot be saved "
+                             f"as a tensor; {_ENV_FIX}.")
+        return {"kind": "ndarray", "value": tensor_of(value)}
+    if isinstance(value, torch.Tensor):
+        return {"kind": "tensor", "value": value.detach().cpu().clone()}
+    if isinstance(value, np.random.Generator):
+        return {"kind": "generator", "state": generator_state_dict(value)}
+    if isinstance(value, np.random.RandomState):
+        return {"kind": "random_state", "state": plain(value.get_state(legacy=False))}
+    if isinstance(value, _CONSTANT_TYPES):
+        return {"kind": "constant"}
+    if isinstance(value, tuple):  # immutable: rebuilt on loading, never shared state
+        return {"kind": "tuple", "items": [_encode(v, f"{path}[{i}]", seen)
+                                           for i, v in enumerate(value)]}
+    if id(value) in seen:
+        return {"kind": "seen"}
+    seen.add(id(value))
+    if isinstance(value, list):
+        return {"kind": "list", "items": [_encode(v, f"{path}[{i}]", seen)
+                                          for i, v in enumerate(value)]}
+    if isinstance(value, dict):
+        bad = [k for k in value if not (k is None or isinstance(k, bool | int | float | str))]
+        if bad:
+            raise ValueError(f"{path}: a dict key {bad[0]!r} is not a plain value; "
+                             f"{_ENV_FIX}.")
+        return {"kind": "dict", "keys": list(value),
+                "values": [_encode(v, f"{path}[{k!r}]", seen) for k, v in value.items()]}
+    if hasattr(value, "__dict__"):
+        return {"kind": "object", "type": type(value).__qualname__,
+                "attrs": {k: _encode(v, f"{path}.{k}", seen) for k, v in vars(value).items()}}
+    raise ValueError(f"{path}: a {type(value).__name__} cannot be saved as plain data; "
+                     f"{_ENV_FIX}.")
+
+
+def _arrays(value: Any) -> Any:
+    """Tensors back to numpy arrays, recursively through dicts (the inverse of
+    :func:`plain` on a ``RandomState``'s state)."""
+    if isinstance(value, dict):
+        return {k: _arrays(v) for k, v in value.items()}
+    return array_of(value) if isinstance(value, torch.Tensor) else value
+
+
+def load_object_state_dict(obj: Any, sd: dict[str, Any]) -> None:
+    """Set ``obj`` to an :func:`object_state_dict` (attributes it lacks then are
+    removed, objects are updated in place). A ValueError names the first path whose
+    object differs in kind; call it on a copy first to leave ``obj`` untouched then."""
+    _decode(obj, sd, type(obj).__name__)
+
+
+def _decode(current: Any, data: Any, path: str) -> Any:
+    """The value ``data`` encodes; objects, lists and dicts are ``current``'s own,
+    updated in place."""
+    if not isinstance(data, dict):
+        return data
+    kind = data["kind"]
+    if kind == "numpy_scalar":
+        return np.dtype(data["dtype"]).type(data["value"])
+    if kind == "ndarray":
+        return array_of(data["value"])
+    if kind == "tensor":
+        device = current.device if isinstance(current, torch.Tensor) else "cpu"
+        return data["value"].clone().to(device)
+    if kind == "generator":
+        return restore_generator(current if isinstance(current, np.random.Generator)
+                                 else None, data["state"])
+    if kind == "random_state":
+        rs = current if isinstance(current, np.random.RandomState) else np.random.RandomState()
+        rs.set_state(_arrays(data["state"]))
+        return rs
+    if kind in ("constant", "seen"):
+        return current
+    if kind == "tuple":
+        old = current if isinstance(current, tuple) else ()
+        return tuple(_decode(old[i] if i < len(old) else None, d, f"{path}[{i}]")
+                     for i, d in enumerate(data["items"]))
+    if kind == "list":
+        old = current if isinstance(current, list) else []
+        items = [_decode(old[i] if i < len(old) else None, d, f"{path}[{i}]")
+                 for i, d in enumerate(data["items"])]
+        if isinstance(current, list):
+            current[:] = items
+            return current
+        return items
+    if kind == "dict":
+        old = current if isinstance(current, dict) else {}
+        items = {k: _decode(old.get(k), d, f"{path}[{k!r}]")
+                 for k, d in zip(data["keys"], data["values"], strict=True)}
+        if isinstance(current, dict):
+            current.clear()
+            current.update(items)
+            return current
+        return items
+    if kind == "object":
+        if current is None or type(current).__qualname__ != data["type"]:
+            raise ValueError(f"{path}: the state holds a {data['type']}, this env "
+                             f"{type(current).__name__}; {_FIX}.")
+        attrs = vars(current)
+        for name, d in data["attrs"].items():
+            # Straight into the instance dict: frozen dataclasses and property setters
+            # are bypassed, as the value is exactly one the object held before.
+            attrs[name] = _decode(attrs.get(name), d, f"{path}.{name}")
+        for name in [k for k in attrs if k not in data["attrs"]]:
+            del attrs[name]  # set after the save (e.g. at a later reset): not then
+        return current
+    raise ValueError(f"{path}: unknown kind {kind!r} in the state; {_FIX}.")
+
+
 # ------------------------------------------------------------------ the training envs
-_ARENA_ARRAYS: tuple[tuple[str, str], ...] = (
-    ("state", "_state"), ("active", "_active"), ("violated", "violated"),
-    ("reached", "reached"), ("overlay", "_overlay"))
-"""``(state key, DroneArena attribute)`` of the arena's episode arrays (``_state`` and
-``_overlay`` may be None)."""
+_ENV_FIX = ("give the env (or the game it wraps) state_dict() and load_state_dict() "
+            "methods of its own, or keep it to numpy / torch / python data")
 
 
 def _monitored(env: Any) -> tuple[Monitor, Any]:
-    """The Monitor wrapper that ``make_vec_env`` puts round each env, and the env."""
+    """The Monitor wrapper that ``make_vec_env`` puts round each env, and the env the
+    solver's ``env_factory`` built."""
     if not isinstance(env, Monitor):
         raise ValueError(f"Expected a Monitor-wrapped env (as make_vec_env builds), got "
                          f"{type(env).__name__}.")
-    return env, env.unwrapped
+    return env, env.env
+
+
+def env_state_dict(env: Any) -> dict[str, Any]:
+    """One env in its current episode as plain data: its own ``state_dict()`` if it has
+    one, else :func:`object_state_dict` of all its attributes (its ``np_random``, its
+    spaces' streams, the game it wraps and that game's state and streams)."""
+    own = getattr(env, "state_dict", None)
+    return own() if callable(own) else object_state_dict(env)
+
+
+def load_env_state_dict(env: Any, sd: dict[str, Any]) -> None:
+    """Set ``env`` to an :func:`env_state_dict` (its own ``load_state_dict`` if it has
+    one)."""
+    own = getattr(env, "load_state_dict", None)
+    if callable(own):
+        own(sd)
+    else:
+        load_object_state_dict(env, sd)
 
 
 def _env_state(env: Any) -> dict[str, Any]:
-    """One training env in its current episode: the Monitor's episode records, the
-    joint env's last observation and random streams, and the arena's state and noise
-    stream."""
+    """One training env in its current episode: the Monitor's episode records and the
+    env's :func:`env_state_dict`."""
     monitor, joint = _monitored(env)
-    arena = joint.arena
     return {
         "monitor": {
             "rewards": [float(r) for r in monitor.rewards],
@@ -231,18 +393,7 @@ def _env_state(env: Any) -> dict[str, Any]:
             "t_start": float(monitor.t_start),
             "current_reset_info": plain(monitor.current_reset_info),
         },
-        "obs": optional_tensor(joint._obs),
-        "np_random": generator_state_dict(joint._np_random),
-        "np_random_seed": None if joint._np_random_seed is None else int(joint._np_random_seed),
-        "action_space_rng": generator_state_dict(joint.action_space._np_random),
-        "observation_space_rng": generator_state_dict(joint.observation_space._np_random),
-        "arena": {
-            "agents": list(arena.agents),
-            "timestep": int(arena.timestep),
-            **{key: optional_tensor(getattr(arena, attr)) for key, attr in _ARENA_ARRAYS},
-            "history": tensor_of(np.stack(arena._history)) if arena._history else None,
-            "rng": generator_state_dict(arena._rng),
-        },
+        "env": env_state_dict(joint),
     }
 
 
@@ -264,7 +415,8 @@ def vec_env_state_dict(vec_env: DummyVecEnv) -> dict[str, Any]:
 
 
 def check_vec_env_state(vec_env: DummyVecEnv, sd: dict[str, Any]) -> None:
-    """A ValueError unless ``sd`` holds as many envs, of the same observation shape."""
+    """A ValueError unless ``sd`` holds as many envs, of the same observation shape,
+    each loadable into a copy of the env it would replace."""
     if int(sd["n_envs"]) != vec_env.num_envs or len(sd["envs"]) != vec_env.num_envs:
         raise ValueError(f"training envs: the state holds {sd['n_envs']}, this solver "
                          f"{vec_env.num_envs} (n_envs); {_FIX}.")
@@ -273,13 +425,10 @@ def check_vec_env_state(vec_env: DummyVecEnv, sd: dict[str, Any]) -> None:
                  torch_dtype(obs.dtype))
     for k, (env, state) in enumerate(zip(vec_env.envs, sd["envs"], strict=True)):
         _, joint = _monitored(env)
-        shape = joint.observation_space.shape
-        if state["obs"] is not None:
-            check_tensor(f"training env {k}'s observation", state["obs"], shape,
-                         torch_dtype(joint.observation_space.dtype))
-        if state["arena"]["state"] is not None:
-            check_tensor(f"training env {k}'s arena state", state["arena"]["state"],
-                         (len(joint.arena.possible_agents), 4), torch.float64)
+        try:
+            load_env_state_dict(copy.deepcopy(joint), state["env"])
+        except ValueError as e:
+            raise ValueError(f"training env {k}: {e}") from None
 
 
 def load_vec_env_state_dict(vec_env: DummyVecEnv, sd: dict[str, Any]) -> None:
@@ -300,17 +449,4 @@ def load_vec_env_state_dict(vec_env: DummyVecEnv, sd: dict[str, Any]) -> None:
         monitor.total_steps = int(m["total_steps"])
         monitor.t_start = float(m["t_start"])
         monitor.current_reset_info = copy.deepcopy(m["current_reset_info"])
-        joint._obs = optional_array(state["obs"])
-        joint._np_random = restore_generator(joint._np_random, state["np_random"])
-        joint._np_random_seed = state["np_random_seed"]
-        joint.action_space._np_random = restore_generator(joint.action_space._np_random,
-                                                          state["action_space_rng"])
-        joint.observation_space._np_random = restore_generator(
-            joint.observation_space._np_random, state["observation_space_rng"])
-        a, arena = state["arena"], joint.arena
-        arena.agents = list(a["agents"])
-        arena.timestep = int(a["timestep"])
-        for key, attr in _ARENA_ARRAYS:
-            setattr(arena, attr, optional_array(a[key]))
-        arena._history = [] if a["history"] is None else list(array_of(a["history"]))
-        arena._rng = restore_generator(arena._rng, a["rng"])
+        load_env_state_dict(joint, state["env"])

@@ -1,0 +1,267 @@
+"""The SAC-style constrained solver on a game that is not the drone arena: mpe2's
+``simple_spread`` made constrained (:class:`~dicrl_torch.envs.mpe.ConstrainedSpread`),
+wrapped by the generic :class:`~dicrl_torch.envs.joint.JointAgentEnv`, with the generic
+continuous bases. Tiny runs (a few hundred SAC steps) on one CPU thread: the protocol,
+shapes, demonstrations, clones and the exact state, not learning quality.
+"""
+
+from __future__ import annotations
+
+import functools
+import io
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+from mpe2 import simple_spread_v3
+
+from dicrl_torch.demos.continuous import ContinuousDemonstrations, record_demonstrations
+from dicrl_torch.envs.joint import JointAgentEnv
+from dicrl_torch.envs.mpe import ConstrainedSpread, ViaPointController
+from dicrl_torch.features.continuous import PositionCellBasis, RandomFourierBasis
+from dicrl_torch.solvers.sac import SACConstrainedSolver, discounted_demo_feature_sums
+
+torch.set_num_threads(1)
+
+GAMMA = 0.95
+MAX_STEPS = 12
+N, D_S, D_A = 2, 4, 2  # ConstrainedSpread: 2 agents, state (x, y, vx, vy), command [2]
+
+
+def spread_game(constrained: bool, max_steps: int = MAX_STEPS,
+                observation: str = "state") -> JointAgentEnv:
+    """The solver's env_factory: the constrained simple_spread as one gymnasium env whose
+    observation is the flattened joint state ``[N * 4]``."""
+    return JointAgentEnv(ConstrainedSpread(constrained=constrained, max_steps=max_steps),
+                         observation=observation)
+
+
+def reward_basis() -> RandomFourierBasis:
+    return RandomFourierBasis(n_agents=N, state_dim=D_S, n_features=6, bandwidth=1.0, seed=0)
+
+
+def cost_basis() -> PositionCellBasis:
+    return PositionCellBasis(n_agents=N, bounds=((-1.5, 1.5), (-1.5, 1.5)),
+                             proximity_radius=0.4, n_per_axis=3, obstacle_centre=(0.0, 0.0),
+                             obstacle_radius=0.3, min_distance=0.4)
+
+
+L_R, L_C = 6, 3 * 3 + 1
+ETA = np.array([1.0, 0.5, 0.2, 1.0, 0.3, 0.7, -1.0])  # [ω_r (6), λ]
+COST = np.linspace(0.0, 1.0, L_C)
+
+
+def make_solver(seed: int = 0, **kwargs) -> SACConstrainedSolver:
+    args = dict(env_factory=spread_game, reward_basis=reward_basis(), cost_basis=cost_basis(),
+                seed=seed, n_envs=2, gamma=GAMMA, learning_starts=40, batch_size=16,
+                buffer_size=400, net_arch=(16, 16), n_eval_episodes=3, demo_fraction=0.25)
+    args.update(kwargs)
+    return SACConstrainedSolver(**args)
+
+
+def via_point_policy(observations, env):
+    """The constrained expert of ConstrainedSpread as a record_demonstrations policy."""
+    if env.timestep == 0:
+        env.expert = ViaPointController(env)
+        env.expert.reset(env.state())
+    u = env.expert.act(env.state(), env.active)
+    return {a: u[env.possible_agents.index(a)] for a in observations}
+
+
+@pytest.fixture(scope="module")
+def demos() -> ContinuousDemonstrations:
+    # use_state=True: the joint state env.state() [N, 4], as JointAgentEnv reads it.
+    return record_demonstrations(ConstrainedSpread(max_steps=MAX_STEPS), via_point_policy,
+                                 n_episodes=3, seed=0, use_state=True)
+
+
+def round_trip(sd: dict) -> dict:
+    f = io.BytesIO()
+    torch.save(sd, f)
+    f.seek(0)
+    return torch.load(f, weights_only=True)
+
+
+# ------------------------------------------------------------------ the joint env
+def test_joint_agent_env_gives_what_the_solver_reads():
+    env = spread_game(constrained=False)
+    assert env.n_agents == N and env.state_shape == (N, D_S) and env.use_state
+    obs, info = env.reset(seed=3)
+    np.testing.assert_array_equal(info["state"], env.env.state())
+    # observation="state": the observation is the flattened state, so states map back.
+    np.testing.assert_array_equal(env.obs_from_states(info["state"]), obs)
+    obs, _, _, _, info = env.step(np.zeros(env.action_space.shape, np.float32))
+    assert info["reached"].shape == (N,) and info["violated"].shape == (N,)
+    assert info["reached"].dtype == bool and not info["reached"].any()  # no goal notion
+    np.testing.assert_array_equal(env.obs_from_states(info["state"][None])[0], obs)
+    # With the agents' observations the policy sees something no state gives back.
+    agents = spread_game(constrained=False, observation="agents")
+    with pytest.raises(ValueError, match="cannot rebuild its observations.*observation='state'"):
+        agents.obs_from_states(info["state"])
+
+
+# ------------------------------------------------------------------ solving
+def test_solve_on_a_third_party_game_gives_feature_expectations_of_the_bases():
+    solver = make_solver()
+    assert solver.spec.n_agents == N and solver.spec.state_shape == (N, D_S)
+    sol = solver.solve(ETA, COST, 300)
+    assert solver.num_timesteps == 300 and solver.model._n_updates > 0
+    assert sol.mu_r.shape == (L_R,) and sol.mu_c.shape == (L_C,)
+    assert sol.reward_sums.shape == (3, L_R) and sol.cost_sums.shape == (3, L_C)
+    assert sol.reached.shape == (3, N) and sol.violated.shape == (3, N)
+    # The nominal game never freezes anyone: every episode runs to its limit (truncated,
+    # no absorbing bonus), and each agent counts once per step in the cells' block.
+    assert torch.equal(sol.lengths, torch.full((3,), MAX_STEPS))
+    mass = (1 - GAMMA**MAX_STEPS) / (1 - GAMMA)
+    torch.testing.assert_close(sol.cost_sums[:, :-1].sum(1),
+                               torch.full((3,), N * mass, dtype=torch.float64))
+    for sums, basis in ((sol.reward_sums, solver.reward_basis),
+                        (sol.cost_sums, solver.cost_basis)):
+        assert sums.min() >= 0 and sums.max() <= basis.max_value / (1 - GAMMA) + 1e-9
+    # The true game is the factory's constrained=True game; trajectories are joint states.
+    true = solver.evaluate(2, true_game=True, deterministic=True, trajectories=True)
+    assert [p.shape[1:] for p in true.paths] == [(N, D_S)] * 2
+    assert [len(p) for p in true.paths] == (true.lengths + 1).tolist()
+    assert 0.0 <= true.violation_rate <= 1.0
+    assert solver._eval_envs[True][0].env.constrained
+
+
+def test_per_agent_critics_split_team_features_equally():
+    # PositionCellBasis counts the whole team per cell: no feature is one agent's own,
+    # so each agent's reward column is half the joint reward.
+    solver = make_solver(per_agent_critics=True, learning_starts=1000)
+    solver.solve(ETA, COST, 60, n_eval_episodes=1)
+    buf = solver.replay_buffer
+    batch = buf.sample(16)
+    assert batch.rewards.shape == (16, N)
+    b, e = buf.last_sample_indices
+    np.testing.assert_allclose(batch.rewards.numpy().sum(1), buf.compute_rewards(b, e),
+                               rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(batch.rewards[:, 0], batch.rewards[:, 1], rtol=1e-6)
+    # Scoring chunks by success under learned constraints uses the same shares; the
+    # spread reports no goal (reached is always False), so every score is 0.
+    solver.solve_keeping_best(ETA, COST, 20, checks=2, n_eval_episodes=1,
+                              constraints=solver.cost_basis.true_constraints())
+    assert [c["success_under_constraints"] for c in solver.last_checks] == [0.0, 0.0]
+
+
+# ------------------------------------------------------------------ demonstrations
+def test_log_likelihood_and_feature_sums_of_recorded_demonstrations(demos):
+    solver = make_solver(seed=1)
+    solver.set_demonstrations(demos)  # their transitions go into the SAC batches
+    solver.solve(ETA, COST, 120, n_eval_episodes=1)
+    per = solver.log_likelihood(demos, per_episode=True)
+    assert per.shape == (3,) and per.dtype == torch.float64 and torch.isfinite(per).all()
+    assert solver.log_likelihood(demos) == pytest.approx(float(per.sum()))
+    # The first step alone against SB3's own squashed density of the joint action (the
+    # expert's saturated commands clipped to ±(1 - action_margin) first, as the solver
+    # does: SB3 clips at float32's epsilon instead).
+    obs = torch.from_numpy(demos.states[:, 0].reshape(3, -1).astype(np.float32))
+    act = torch.from_numpy(np.clip(demos.actions[:, 0].reshape(3, -1), -0.999, 0.999)
+                           .astype(np.float32))
+    actor = solver.model.actor
+    with torch.no_grad():
+        mean, log_std, _ = actor.get_action_dist_params(obs)
+        sb3 = actor.action_dist.proba_distribution(mean, log_std).log_prob(act)
+    one = ContinuousDemonstrations(states=demos.states[:, :2], actions=demos.actions[:, :1],
+                                   lengths=np.ones(3, np.int64))
+    # (float32 in SB3 near the clip: agreement to ~1e-4 relative)
+    torch.testing.assert_close(solver.log_likelihood(one, per_episode=True), sb3.double(),
+                               rtol=1e-3, atol=1e-3)
+    # An agent's actions after it left the episode are not scored.
+    acted = np.array(demos.lengths)[:, None].repeat(N, 1)
+    acted[:, 1] = 2
+    other = np.array(demos.actions)
+    other[:, 2:, 1] = 0.5
+    left = [ContinuousDemonstrations(states=demos.states, actions=a, lengths=demos.lengths,
+                                     agent_lengths=acted) for a in (demos.actions, other)]
+    assert solver.log_likelihood(left[0]) == solver.log_likelihood(left[1])
+    assert solver.log_likelihood(left[0]) != solver.log_likelihood(demos)
+    # Feature sums as the solver counts rollouts: next states, absorbing last state.
+    sums = discounted_demo_feature_sums(demos, solver.cost_basis, GAMMA)
+    L = int(demos.lengths[0])
+    w = GAMMA ** torch.arange(L, dtype=torch.float64)
+    w[-1] /= 1 - GAMMA
+    torch.testing.assert_close(sums[0], w @ solver.cost_basis(demos.states[0, 1:L + 1]))
+
+
+def test_demonstrations_of_other_shapes_are_refused_naming_field_and_fix(demos):
+    solver = make_solver()
+    fewer = ContinuousDemonstrations(states=demos.states[..., :3], actions=demos.actions,
+                                     lengths=demos.lengths)
+    with pytest.raises(ValueError, match=r"field 'states'.*\[2, 3\].*\[2, 4\].*use_state"):
+        solver.log_likelihood(fewer)
+    wider = ContinuousDemonstrations(states=demos.states, lengths=demos.lengths,
+                                     actions=np.concatenate([demos.actions] * 2, -1))
+    with pytest.raises(ValueError, match=r"field 'actions'.*8 values.*has 4"):
+        solver.set_demonstrations(wider)
+    one_agent = ContinuousDemonstrations(states=demos.states[:, :, :1],
+                                         actions=demos.actions[:, :, :1],
+                                         lengths=demos.lengths)
+    with pytest.raises(ValueError, match="field 'states'"):
+        solver.log_likelihood(one_agent)
+    with pytest.raises(ValueError, match="ContinuousDemonstrations"):
+        solver.log_likelihood(np.zeros((3, 5, 2, 4)))
+    # An env whose observation is not the state cannot score demonstrations.
+    agents = make_solver(env_factory=functools.partial(spread_game, observation="agents"))
+    with pytest.raises(ValueError, match="cannot rebuild its observations"):
+        agents.log_likelihood(demos)
+
+
+# ------------------------------------------------------------------ refusals
+class DiscreteGame(gym.Env):
+    """A one-agent gymnasium game with discrete actions."""
+
+    observation_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = spaces.Discrete(3)
+    n_agents, state_shape = 1, (1, 2)
+
+    def __init__(self, constrained: bool = False) -> None:
+        self.constrained = constrained
+
+
+def test_discrete_action_games_are_refused_with_the_fix():
+    def discrete_spread(constrained):
+        return JointAgentEnv(simple_spread_v3.parallel_env(N=2, continuous_actions=False))
+
+    with pytest.raises(ValueError, match=r"Discrete\(5\).*continuous_actions=True"):
+        make_solver(env_factory=discrete_spread)
+    with pytest.raises(ValueError, match=r"DiscreteGame has the action space Discrete\(3\); "
+                                         r"the SAC solver needs continuous actions"):
+        make_solver(env_factory=DiscreteGame)
+    with pytest.raises(ValueError, match="not a gymnasium env.*JointAgentEnv"):
+        make_solver(env_factory=lambda constrained: ConstrainedSpread(constrained=constrained))
+    with pytest.raises(ValueError, match="keyword constrained"):
+        make_solver(env_factory=lambda: spread_game(False))
+
+
+# ------------------------------------------------------------------ clones and state
+def test_clone_gets_its_own_streams_and_the_state_round_trips(demos):
+    solver = make_solver(seed=2)
+    solver.set_demonstrations(demos)
+    solver.solve(ETA, COST, 90, n_eval_episodes=1)  # episodes of 12 cut mid-way
+    twin = solver.clone(9)
+    games = [s.vec_env.envs[0].unwrapped.env for s in (solver, twin)]
+    assert games[0]._rng is not games[1]._rng  # set_rng: the twin's own noise stream
+    a = twin.solve(ETA, COST, 60, n_eval_episodes=2)
+    assert a.mu_c.shape == (L_C,)
+
+    # The exact state: saved mid-episode, loaded into a fresh solver built with the same
+    # arguments (but another seed: the state carries the seed), continued identically.
+    sd = round_trip(solver.state_dict())
+    back = make_solver(seed=5)
+    back.load_state_dict(sd)
+    for s in (solver, back):
+        s.set_weights(ETA * 0.5, COST)
+    ref, got = solver.solve(ETA * 0.5, COST, 70), back.solve(ETA * 0.5, COST, 70)
+    for name in ("reward_sums", "cost_sums", "lengths", "reached", "violated"):
+        assert torch.equal(getattr(ref, name), getattr(got, name)), name
+    for key, value in solver.model.policy.state_dict().items():
+        assert torch.equal(value, back.model.policy.state_dict()[key]), key
+    assert solver.log_likelihood(demos) == back.log_likelihood(demos)
+    # A state of another game (other spaces) is refused, naming the difference.
+    with pytest.raises(ValueError, match="env: state"):
+        make_solver(env_factory=functools.partial(spread_game, observation="agents")
+                    ).load_state_dict(sd)
