@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from config_checks import is_drone_run, shard_files_read_by, torchrun_rank
+from config_checks import is_drone_run, is_mpe_run, shard_files_read_by, torchrun_rank
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
@@ -104,17 +104,11 @@ def drone_env_factory(cfg):
     return functools.partial(JointDroneEnv, **OmegaConf.to_container(cfg.env.arena))
 
 
-def drone_task(cfg):
-    """The drone arena's task (imports stable-baselines3: only for the arena)."""
-    from dicrl_torch.runs.drones import DroneTask, derived_seed
-
-    reward_basis = instantiate(cfg.features.reward)
-    cost_basis = instantiate(cfg.features.cost)
+def sac_task_settings(cfg) -> dict:
+    """The keyword arguments every SAC-solved task takes (runs/continuous.py's
+    ``SACTask``): the split, seed, evaluation, inner and last solves, η(0) and baseline."""
     s, a, b = cfg.solver, cfg.algo, cfg.baselines
-    solver = build(s.solver, reward_basis=reward_basis, cost_basis=cost_basis,
-                   seed=derived_seed(cfg.seed, 1), env_factory=drone_env_factory(cfg))
-    return DroneTask(
-        solver=solver, reward_basis=reward_basis, cost_basis=cost_basis,
+    return dict(
         split=list(cfg.split), seed=cfg.seed, eval_episodes=cfg.eval_episodes,
         eval_action=s.eval_action, timesteps=s.timesteps, n_eval_episodes=s.n_eval_episodes,
         warmup_timesteps=s.warmup_timesteps, init_reward_weights=a.init_reward_weights,
@@ -127,8 +121,33 @@ def drone_task(cfg):
         baseline_max_constraints=b.max_constraints)
 
 
+def drone_task(cfg):
+    """The drone arena's task (imports stable-baselines3: only for the arena)."""
+    from dicrl_torch.runs.drones import DroneTask, derived_seed
+
+    reward_basis = instantiate(cfg.features.reward)
+    cost_basis = instantiate(cfg.features.cost)
+    solver = build(cfg.solver.solver, reward_basis=reward_basis, cost_basis=cost_basis,
+                   seed=derived_seed(cfg.seed, 1), env_factory=drone_env_factory(cfg))
+    return DroneTask(solver=solver, reward_basis=reward_basis, cost_basis=cost_basis,
+                     **sac_task_settings(cfg))
+
+
+def mpe_task(cfg):
+    """The constrained MPE spread's task (``env=mpe_spread``; issue 27)."""
+    from dicrl_torch.runs.mpe import build_mpe_task
+
+    return build_mpe_task(
+        layout=instantiate(cfg.env.layout), env=OmegaConf.to_container(cfg.env.arena),
+        reward_basis=instantiate(cfg.features.reward),
+        cost_basis=instantiate(cfg.features.cost),
+        solver=instantiate(cfg.solver.solver, _partial_=True), **sac_task_settings(cfg))
+
+
 def build_task(cfg, rank: int | None = None):
     """The configured environment's task."""
+    if is_mpe_run(cfg):
+        return mpe_task(cfg)
     return drone_task(cfg) if is_drone_run(cfg) else grid_task(cfg, rank)
 
 

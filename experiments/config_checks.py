@@ -272,6 +272,13 @@ def is_drone_run(cfg) -> bool:
     return OmegaConf.select(cfg, "env.arena", default=None) is not None
 
 
+def is_mpe_run(cfg) -> bool:
+    """The constrained MPE spread (``env=mpe_spread``): a continuous game like the arena,
+    told apart by its layout."""
+    return is_drone_run(cfg) and OmegaConf.select(
+        cfg, "env.layout._target_", default=None) == "dicrl_torch.envs.mpe.SpreadLayout"
+
+
 def is_simulated(cfg) -> bool:
     return not issubclass(get_class(cfg.comm._target_), DistributedCommunicator)
 

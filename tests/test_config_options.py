@@ -115,6 +115,11 @@ COVERED_ELSEWHERE = {
     # its tiny run (the first 2 of its 3 experts, T = 8) is in the varied-start tests
     ("experiment", "table1_varied"):
         "tests/test_varied_start.py::test_table1_varied_runs_one_outer_iteration_at_reduced_scale",
+    # the constrained MPE spread, through the runner at tiny scale with both cost bases
+    **{option: "tests/test_mpe_task.py::test_the_mpe_quick_config_runs_end_to_end"
+       for option in [("env", "mpe_spread"), ("experiment", "mpe_quick"),
+                      ("features/reward", "landmark_coverage"),
+                      ("features/cost", "position_cells"), ("features/cost", "frozen_network")]},
 }
 
 

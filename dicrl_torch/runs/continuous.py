@@ -1,0 +1,387 @@
+"""What every continuous game's task shares when its learners are SAC solvers
+(docs/design.md §2.3, §7; issue 27): :class:`SACTask`.
+
+A continuous task (the constrained MPE's :class:`~dicrl_torch.runs.mpe.MPETask`, the
+drone arena's :class:`~dicrl_torch.runs.drones.DroneTask`) runs the same steps whatever
+the game:
+
+1. one SAC solver is pre-trained on ``η(0), ω_c(0)`` (``warmup_timesteps``), once per
+   process; every learner, C-ICRL and the greedy baseline train clones of it, seeded per
+   learner and per stream, each holding only its own demonstrations;
+2. the learned constraint set of a learner is the paper's rule ``ω_c,j >= threshold``;
+   FPR and FNR against the game's true constraint features (None without a ground
+   truth);
+3. a learner's table row comes from a last solve on its learned ``(η̄, ω_c)``
+   (:meth:`~dicrl_torch.solvers.sac.SACConstrainedSolver.solve_keeping_best`), flown in
+   the TRUE game with mean and sampled actions on common random numbers;
+4. M(C)E-greedy (the paper's §6.2 baseline) given D-ICRL's learned reward, all
+   demonstrations pooled.
+
+:class:`SACTask` runs any game of the solver's joint-env protocol as it is (your own
+environment: docs/own_environment_draft.md): SR and CVR are the protocol's (per agent,
+``info["reached"]`` without ``info["violated"]``, and ``info["violated"]``), the constraint
+map a strip of the cost features, no reference row and no figure. A subclass says what
+depends on the game (:class:`~dicrl_torch.runs.mpe.MPETask`): :meth:`SACTask.evaluate_policy`,
+the reference rows, the figures, the constraint maps, the identifiability record.
+Nothing here reads a config.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from dicrl_torch.algos.dicrl import DICRL
+from dicrl_torch.algos.greedy import SACGreedyConstraintInference
+from dicrl_torch.algos.models import SACLearnerModel
+from dicrl_torch.demos import partition_demonstrations
+from dicrl_torch.demos.continuous import save_continuous_demonstrations
+from dicrl_torch.envs.parallel import agg_axes, axes_image
+from dicrl_torch.metrics import false_negative_rate, false_positive_rate, learned_constraints
+
+__all__ = ["EVAL_ACTIONS", "FINAL_SCORES", "GREEDY_BASELINE", "SACTask", "derived_seed",
+           "feature_strip"]
+
+EVAL_ACTIONS: tuple[str, ...] = ("mean", "sampled")
+FINAL_SCORES: tuple[str, ...] = ("penalised_return", "learned_success")
+GREEDY_BASELINE = "M(C)E-greedy"
+
+
+def derived_seed(seed: int, *keys: int) -> int:
+    """An independent stream per purpose (learner, C-ICRL, evaluation) from one seed: the
+    one derivation of every continuous task's streams."""
+    return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
+
+
+def _count(name: str, value: Any, least: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < least:
+        raise ValueError(f"{name} must be an int >= {least}, got {value!r}.")
+    return int(value)
+
+
+def _finite(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer
+                                                 | np.floating) or not np.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value!r}.")
+    return float(value)
+
+
+class SACTask:
+    """A continuous game's task, for the runner (:class:`~dicrl_torch.runs.runner.Task`;
+    module docstring): usable as it is for any game of the joint-env protocol, or
+    subclassed for a game's own metrics and pictures.
+
+    Args:
+        solver: an untrained :class:`~dicrl_torch.solvers.sac.SACConstrainedSolver` over
+            the learners' bases (the warm-up trains it; learners train clones).
+        demos: every demonstration (``ContinuousDemonstrations`` of the solver's game, or
+            convertible with ``to_continuous()``), split over the learners by ``split``
+            in order; checked against the solver's env (states ``[N, d_s]``, actions).
+        split: demonstrations per learner (positive, summing to ``demos``' count).
+        seed: seeds the clones and the evaluation.
+        true_constraints: ``[l_c]`` bool, the cost features that are true constraints of
+            the game; None when the cost basis has no ground truth (FPR and FNR are then
+            None: ``null`` in ``results.json``, N/A in the table).
+        eval_episodes: true-game rollouts per table row.
+        eval_action: ``"mean"`` or ``"sampled"``: the actions of the table's SR and CVR
+            (the row holds both).
+        timesteps, n_eval_episodes: SAC steps and rollouts per inner solve.
+        warmup_timesteps: pre-training steps on ``η(0), ω_c(0)`` (0: none).
+        init_reward_weights, init_multiplier, init_cost_weights: ``η(0)``, ``ω_c(0)``
+            (the trainer's, the same numbers).
+        final_timesteps, final_checks, final_restarts, final_score: the last solve on
+            each learned ``(η̄, ω_c)``
+            (:meth:`~dicrl_torch.solvers.sac.SACConstrainedSolver.solve_keeping_best`).
+        threshold: ``ω_c,j >= threshold`` marks a learned constraint.
+        start_states: ``[P, N, d_s]`` joint states spanning the start distribution's
+            support (:meth:`SACLearnerModel.start_features`); None: unknown.
+        baseline: build M(C)E-greedy; ``baseline_*``: its settings
+            (:class:`~dicrl_torch.algos.greedy.SACGreedyConstraintInference`).
+
+    Raises:
+        ValueError: a setting out of range, demonstrations that do not fit the solver's
+            env, a split that does not fit them, or a true-constraint mask of the wrong
+            width.
+    """
+
+    columns: tuple[str, ...] = ("FPR", "FNR", "CVR", "SR")
+
+    def __init__(self, *, solver, demos, split: Sequence[int], seed: int,
+                 true_constraints: Any = None, eval_episodes: int = 100,
+                 eval_action: str = "mean", timesteps: int, n_eval_episodes: int = 10,
+                 warmup_timesteps: int = 0, init_reward_weights: float = 1.0,
+                 init_multiplier: float = -1.0, init_cost_weights: float = 0.0,
+                 final_timesteps: int | None = None, final_checks: int = 1,
+                 final_restarts: int = 1, final_score: str = "penalised_return",
+                 threshold: float = 0.5, start_states: Any = None, baseline: bool = False,
+                 baseline_penalty: float = 10.0, baseline_timesteps: int = 3000,
+                 baseline_epsilon: float | None = None,
+                 baseline_max_constraints: int | None = None) -> None:
+        from dicrl_torch.solvers.sac.protocol import as_continuous
+
+        self.base = solver
+        self.reward_basis, self.cost_basis = solver.reward_basis, solver.cost_basis
+        demos = as_continuous(demos, solver.spec)  # refused, naming the fix, if unfit
+        if isinstance(split, str | bytes) or not isinstance(split, Sequence) or not split:
+            raise ValueError(f"split must be a non-empty list of positive ints (episodes "
+                             f"per learner), got {split!r}; e.g. split=[10, 10].")
+        self.split = [_count("split entries", m) for m in split]
+        if sum(self.split) != demos.n_trajectories:
+            raise ValueError(f"split {self.split} sums to {sum(self.split)}, but there are "
+                             f"{demos.n_trajectories} demonstrations; make them agree.")
+        self.seed = _count("seed", seed, 0)
+        self.eval_episodes = _count("eval_episodes", eval_episodes)
+        if eval_action not in EVAL_ACTIONS:
+            raise ValueError(f"eval_action must be one of {list(EVAL_ACTIONS)}, got "
+                             f"{eval_action!r}.")
+        self.eval_action = str(eval_action)
+        self.timesteps = _count("timesteps", timesteps, 0)
+        self.n_eval_episodes = _count("n_eval_episodes", n_eval_episodes)
+        self.warmup_timesteps = _count("warmup_timesteps", warmup_timesteps, 0)
+        self.eta0 = torch.full((solver.l_r + 1,), _finite("init_reward_weights",
+                                                          init_reward_weights),
+                               dtype=torch.float64)
+        self.eta0[-1] = _finite("init_multiplier", init_multiplier)
+        cw0 = _finite("init_cost_weights", init_cost_weights)
+        if not 0.0 <= cw0 <= 1.0:
+            raise ValueError(f"init_cost_weights must lie in [0, 1], got {cw0}.")
+        self.cw0 = torch.full((solver.l_c,), cw0, dtype=torch.float64)
+        final_timesteps = self.timesteps if final_timesteps is None else final_timesteps
+        checks = _count("final_checks", final_checks)
+        if final_score not in FINAL_SCORES:
+            raise ValueError(f"final_score must be one of {list(FINAL_SCORES)}, got "
+                             f"{final_score!r}.")
+        self.final = dict(timesteps=_count("final_timesteps", final_timesteps, checks),
+                          checks=checks, restarts=_count("final_restarts", final_restarts),
+                          score=str(final_score))
+        self.threshold = _finite("threshold", threshold)
+        if not 0.0 < self.threshold <= 1.0:
+            raise ValueError(f"threshold must lie in (0, 1], got {threshold!r}.")
+        if true_constraints is None:
+            self.true = None
+        else:
+            true = np.asarray(true_constraints)
+            if true.dtype != bool or true.shape != (solver.l_c,):
+                raise ValueError(f"true_constraints must be [{solver.l_c}] bool (one per cost "
+                                 f"feature), got dtype {true.dtype} shape {true.shape}.")
+            self.true = true.copy()
+        self.start_states = start_states
+        self.baseline = dict(run=bool(baseline), penalty=float(baseline_penalty),
+                             timesteps=int(baseline_timesteps), epsilon=baseline_epsilon,
+                             max_constraints=baseline_max_constraints)
+        self.demos = demos
+        self.shards = list(partition_demonstrations(demos, self.split))
+        self._warm = False
+        self._paths: list[np.ndarray] = []  # rollouts of the row evaluated last (its map)
+        self._greedy: dict[str, SACGreedyConstraintInference] = {}
+
+    # ------------------------------------------------------------------ set-up
+    def describe(self) -> str:
+        n, d_s = self.base.spec.state_shape
+        truth = "no ground truth" if self.true is None \
+            else f"{int(self.true.sum())} of them true constraints"
+        return (f"{self.base.spec.name}: {n} agents (joint state [{n}, {d_s}]); "
+                f"{len(self.split)} learners holding {self.split} episodes; "
+                f"{self.cost_basis.dim} cost features, {truth}")
+
+    def announce(self, out: Path) -> None:
+        """Prints :meth:`describe` and saves the demonstrations as ``demos.npz``."""
+        save_continuous_demonstrations(Path(out) / "demos.npz", self.demos)
+        print(self.describe(), flush=True)
+
+    def initial_weights(self) -> dict[str, float]:
+        """``η(0)`` and ``ω_c(0)`` as the trainer takes them (``DICRL``'s
+        ``init_reward_weights``, ``init_multiplier``, ``init_cost_weights``): the
+        warm-up trains on the same numbers, so pass these to the trainer."""
+        return {"init_reward_weights": float(self.eta0[0]),
+                "init_multiplier": float(self.eta0[-1]),
+                "init_cost_weights": float(self.cw0[0]) if len(self.cw0) else 0.0}
+
+    # ------------------------------------------------------------------ learners
+    def warmup_summary(self, solution) -> str:
+        """What the warm-up's policy does in the nominal game (one line); a subclass
+        says it in its game's words."""
+        return (f"{float(solution.reached.double().mean()):.2f} of the agents reach their "
+                f"goal and {solution.violation_rate:.2f} cross a true constraint")
+
+    def _warmed_base(self):
+        """The base solver after its warm-up on ``η(0), ω_c(0)`` (once per process; it is
+        deterministic, so a resumed run warms up to the same state)."""
+        if not self._warm and self.warmup_timesteps:
+            t0 = time.perf_counter()
+            sol = self.base.solve(self.eta0, self.cw0, self.warmup_timesteps)
+            print(f"SAC warm-up: {self.warmup_timesteps} steps on η(0) in "
+                  f"{time.perf_counter() - t0:.0f} s; in the nominal game "
+                  f"{self.warmup_summary(sol)}", flush=True)
+        self._warm = True
+        return self.base
+
+    def learner_model(self, local_ids: Sequence[int], shards: Sequence, stream: int
+                      ) -> SACLearnerModel:
+        """Each local learner owns a clone of the warmed-up solver, seeded per learner and
+        per ``stream`` (0: D-ICRL, 1: C-ICRL), holding its own demonstrations."""
+        base = self._warmed_base()
+        solvers = [base.clone(derived_seed(self.seed, 2, stream, v)) for v in local_ids]
+        for solver, shard in zip(solvers, shards, strict=True):
+            solver.set_demonstrations(shard)  # its own episodes only (solver.demo_fraction)
+        return SACLearnerModel(solvers=solvers, timesteps=self.timesteps,
+                               n_eval_episodes=self.n_eval_episodes,
+                               start_states=self.start_states)
+
+    # ------------------------------------------------------------------ metrics
+    def rates(self, mask: np.ndarray) -> dict[str, Any]:
+        """FPR, FNR (None without a ground truth), the size and the names of a learned
+        set ``mask`` ``[l_c]`` bool."""
+        names = [self.cost_basis.names[j] for j in np.flatnonzero(mask)]
+        return {"FPR": false_positive_rate(mask, self.true),
+                "FNR": false_negative_rate(mask, self.true),
+                "n_learned": int(mask.sum()), "constraints": names}
+
+    def learned_mask(self, row: dict) -> np.ndarray:
+        """``[l_c]`` bool: a row's learned constraints (its ``constraints`` names)."""
+        mask = np.zeros(self.cost_basis.dim, dtype=bool)
+        mask[[self.cost_basis.names.index(n) for n in row.get("constraints") or ()]] = True
+        return mask
+
+    def outer_metrics(self, trainer: DICRL, rollouts: bool) -> dict[str, list]:
+        """FPR and FNR of each local learner's ``ω_c >= threshold`` (no rollouts: a
+        true-game evaluation of SAC is a table-row affair)."""
+        rates = [self.rates(learned_constraints(w, self.threshold))
+                 for w in trainer.state.cost_weights]
+        return {"FPR": [r["FPR"] for r in rates], "FNR": [r["FNR"] for r in rates]}
+
+    def evaluate_policy(self, solver, deterministic: bool) -> tuple[float, float, list]:
+        """SR, CVR and the rollouts' joint states ``[L+1, N, d_s]`` of ``solver``'s
+        current policy, ``eval_episodes`` episodes in the TRUE game on the evaluation's
+        common random numbers (the same starts for every row). Here the protocol's:
+        SR the share of agents that reached their goal (``info["reached"]``) without a
+        violation, CVR the share that violated (``info["violated"]``); a game with a task
+        success of its own overrides it."""
+        ev = solver.evaluate(self.eval_episodes, deterministic=deterministic,
+                             true_game=True, trajectories=True, rng=self.evaluation_rng())
+        return ev.success_rate, ev.violation_rate, list(ev.paths)
+
+    def evaluation_rng(self) -> np.random.Generator:
+        """A fresh generator of the evaluation's episode seeds: every row, and both
+        action modes, fly from the same starts."""
+        return np.random.default_rng(derived_seed(self.seed, 3))
+
+    def _evaluate_true_game(self, solver) -> dict:
+        """The row's SR and CVR with mean actions (how an SAC policy is deployed) and
+        sampled ones (the MCE policy itself); ``SR`` and ``CVR`` are ``eval_action``'s."""
+        row: dict[str, Any] = {"CR_mean": None, "CR_std": None, "RFD": None}
+        paths: dict[str, list] = {}
+        for mode in EVAL_ACTIONS:
+            sr, cvr, paths[mode] = self.evaluate_policy(solver, deterministic=mode == "mean")
+            row[f"SR_{mode}"], row[f"CVR_{mode}"] = sr, cvr
+        row.update(SR=row[f"SR_{self.eval_action}"], CVR=row[f"CVR_{self.eval_action}"])
+        self._paths = paths[self.eval_action]
+        return row
+
+    def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True) -> dict:
+        """A last solve on the learned ``(η̄, ω_c)``, then the true-game row."""
+        eta, cw = trainer.state.eta_bar[i], trainer.state.cost_weights[i]
+        mask = learned_constraints(cw, self.threshold)
+        solver = trainer.learner_model.inner_solver(i)
+        f = self.final
+        kept = solver.solve_keeping_best(
+            eta, cw, f["timesteps"], checks=f["checks"], restarts=f["restarts"],
+            deterministic=self.eval_action == "mean",
+            constraints=mask if f["score"] == "learned_success" else None)
+        row = self._evaluate_true_game(solver)
+        row.update(self.rates(mask), multiplier=float(eta[-1]),
+                   reward_weights=eta[:-1].tolist(), policy_timesteps=kept.timesteps,
+                   final_checks=solver.last_checks)
+        return row
+
+    def evaluation_settings(self) -> dict[str, Any]:
+        return {"threshold": self.threshold, "eval_episodes": self.eval_episodes,
+                "eval_action": self.eval_action,
+                **{f"final_{k}": v for k, v in self.final.items()}}
+
+    def row_scalars(self, row: dict) -> list[tuple[str, float, int]]:
+        """The last solve's chunk scores, per restart (``final/...``)."""
+        out = []
+        for check in row.get("final_checks") or ():
+            suffix = f"/restart{check['restart']}" if check["restart"] else ""
+            for key in ("penalised_return", "success_under_constraints"):
+                if check[key] is not None:
+                    out.append((f"final/{key}{suffix}", check[key], check["timesteps"]))
+        return out
+
+    # ------------------------------------------------------------------ baseline
+    def make_baselines(self, methods: dict[str, dict], progress: bool = True) -> dict:
+        """M(C)E-greedy given D-ICRL's learned reward (learner 1's ω_r), on every
+        demonstration (the paper's protocol); nothing before D-ICRL has a row."""
+        b = self.baseline
+        if not b["run"] or "D-ICRL" not in methods:
+            return {}
+        greedy = SACGreedyConstraintInference(
+            solver=self._warmed_base().clone(derived_seed(self.seed, 4)),
+            reward_weights=torch.tensor(methods["D-ICRL"]["learners"][0]["reward_weights"],
+                                        dtype=torch.float64),
+            demonstrations=self.demos, penalty=b["penalty"], timesteps=b["timesteps"],
+            epsilon=b["epsilon"], max_constraints=b["max_constraints"], progress=progress)
+        self._greedy = {GREEDY_BASELINE: greedy}
+        return dict(self._greedy)
+
+    def baseline_row(self, name: str, result) -> tuple[dict, list[dict]]:
+        mask = result.constraint_mask.numpy()
+        row = self._evaluate_true_game(self._greedy[name].solver)
+        row.update(self.rates(mask), stop_reason=result.stop_reason)
+        history, sel = [], np.zeros_like(mask)
+        for k, ll in enumerate(result.log_likelihood):
+            if k:
+                sel[result.added[k - 1]] = True
+            rates = self.rates(sel)
+            history.append({"step": k, "added": result.added_names[k - 1] if k else None,
+                            "log_likelihood": ll, "FPR": rates["FPR"], "FNR": rates["FNR"]})
+        return row, history
+
+    def annotate(self, methods: dict) -> dict | None:
+        """No identifiability record unless a subclass computes one."""
+        return None
+
+    # ------------------------------------------------------------------ pictures
+    def reference_rows(self) -> dict[str, dict]:
+        """None here: a game with experts to fly adds theirs."""
+        return {}
+
+    def constraint_map(self, label: str, row: dict) -> np.ndarray:
+        """The cost features as a strip: learned ones filled (red), true ones outlined
+        (black); a game with a map of its own overrides it."""
+        self._paths = []
+        return feature_strip(self.learned_mask(row), self.true,
+                             title=f"{label}: {int(self.learned_mask(row).sum())} learned "
+                                   f"constraints of {self.cost_basis.dim} features")
+
+    def figures(self, *, methods: dict, histories: dict, experiment: str,
+                eval_every: int) -> dict[str, np.ndarray]:
+        """None here: a game adds its own."""
+        return {}
+
+
+def feature_strip(learned: np.ndarray, true: np.ndarray | None, *, title: str = ""
+                  ) -> np.ndarray:
+    """``[l]`` learned (filled red) and true (outlined black) features as one strip of
+    squares, wrapped every 40, as an ``H x W x 3`` uint8 image."""
+    from matplotlib.patches import Rectangle
+
+    learned = np.asarray(learned, dtype=bool)
+    width = min(40, len(learned))
+    rows = -(-len(learned) // width)
+    ax = agg_axes((max(3.0, 0.15 * width + 1), 0.2 * rows + 1.2))
+    for j in range(len(learned)):
+        x, y = j % width, -(j // width)
+        ax.add_patch(Rectangle((x, y), 0.9, 0.9, color="red" if learned[j] else "0.9"))
+        if true is not None and true[j]:
+            ax.add_patch(Rectangle((x, y), 0.9, 0.9, fill=False, ec="k", lw=1.2))
+    ax.set_xlim(-0.2, width)
+    ax.set_ylim(-rows + 0.8, 1.1)
+    ax.set_axis_off()
+    return axes_image(ax, title)

@@ -1,0 +1,349 @@
+"""The constrained MPE spread as a run of the one runner (issue 27): the task builds, its
+experts respect the true constraints, its identifiability counts add up, a tiny run goes
+end to end through the runner (directly, and from the ``experiment=mpe_quick`` config),
+bad input is refused with the fix named, and the "Your own environment" draft runs.
+
+Tiny scale on one CPU thread: SAC steps in the tens; plumbing, not learning quality.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from dicrl_torch.algos.dicrl import StepSizes
+from dicrl_torch.comm import SimulatedCommunicator
+from dicrl_torch.comm.graphs import CompleteSchedule
+from dicrl_torch.demos.continuous import (
+    ContinuousDemonstrations,
+    load_continuous_demonstrations,
+    save_continuous_demonstrations,
+)
+from dicrl_torch.envs.mpe import (
+    SUCCESS_RADIUS,
+    in_disc,
+    landmarks_covered,
+    pairwise_too_close,
+)
+from dicrl_torch.features.continuous import ModuleBasis, PositionCellBasis, bounded_mlp
+from dicrl_torch.features.mpe import LandmarkRewardBasis
+from dicrl_torch.logger import NullLogger
+from dicrl_torch.runs.mpe import MPETask, build_mpe_task, spread_success
+from dicrl_torch.runs.runner import RunSettings, TrainerSpec, run_all_in_one
+
+torch.set_num_threads(1)
+
+ROOT = Path(__file__).resolve().parents[1]
+MAX_STEPS = 30  # the via-point experts settle within 25 steps (2 agents)
+# SAC at toy scale (as tests/test_generic_sac.py).
+TINY_SOLVER = {"learning_starts": 30, "batch_size": 16, "net_arch": [16, 16], "n_envs": 2,
+               "buffer_size": 2000}
+TINY = dict(env={"max_steps": MAX_STEPS}, solver=TINY_SOLVER, eval_episodes=3,
+            timesteps=30, n_eval_episodes=2, warmup_timesteps=60)
+
+
+def tiny_task(**kwargs) -> MPETask:
+    return build_mpe_task(**{**TINY, "split": [2, 3], "seed": 0, **kwargs})
+
+
+@pytest.fixture(scope="module")
+def task() -> MPETask:
+    return tiny_task()
+
+
+def trainer_spec(task: MPETask) -> TrainerSpec:
+    return TrainerSpec(
+        schedules=lambda n: (CompleteSchedule(n_learners=n), CompleteSchedule(n_learners=n)),
+        steps=StepSizes(alpha_bar=0.002), inner_step=0.005, n_shards=len(task.split),
+        options=dict(inner_steps=2, lsca_curvature=50.0, prune_accrued=True,
+                     **task.initial_weights()))
+
+
+def run_tiny(task: MPETask, out: Path) -> dict:
+    settings = RunSettings(experiment="mpe_tiny", config={}, training_config={"run": "tiny"},
+                           outer_iterations=1)
+    return run_all_in_one(task, settings, trainer_spec(task), out=out,
+                          t_start=time.perf_counter(), logger=NullLogger(),
+                          communicator=lambda n: SimulatedCommunicator(n_learners=n))
+
+
+# ------------------------------------------------------------------ the task
+def test_the_task_builds_with_its_shards_bases_and_truth(task):
+    assert task.split == [2, 3] and [s.n_episodes for s in task.shards] == [2, 3]
+    assert task.demos.n_episodes == 5 and task.demos.states.shape[2:] == (2, 4)
+    assert task.reward_basis.dim == 2 and task.cost_basis.dim == 8 * 8 + 1
+    # 8 x 8 cells over [-1.5, 1.5]²: grid lines through the disc's centre, so the 4 cells
+    # around it overlap the disc; the proximity feature is the distance constraint.
+    names = [task.cost_basis.names[j] for j in np.flatnonzero(task.true)]
+    assert names == ["cell(3,3)", "cell(4,3)", "cell(3,4)", "cell(4,4)", "proximity"]
+    assert task.columns == ("FPR", "FNR", "FNR_required", "CVR", "SR")
+    assert "2 learners holding [2, 3]" in task.describe()
+
+
+def test_the_demonstrations_respect_the_true_constraints(task):
+    """Checked from the recorded states themselves, not by the env's verdict the task
+    used to keep them: no agent ever in the disc, never two closer than min_distance
+    (CVR 0), every landmark covered by a distinct agent at the end (success 1)."""
+    lay, d = task.layout, task.demos
+    final = np.stack([d.states[k, int(n), :, :2] for k, n in enumerate(d.lengths)])
+    violated = np.zeros((d.n_episodes, lay.n_agents), dtype=bool)
+    for k, n in enumerate(d.lengths):
+        pos = d.states[k, 1:int(n) + 1, :, :2]  # [L, N, 2]: the states after each step
+        violated[k] = (in_disc(pos, lay.disc_centre, lay.disc_radius)
+                       | pairwise_too_close(pos, lay.min_distance)).any(0)
+    assert not violated.any()  # CVR 0
+    assert spread_success(final, violated, lay).all()  # SR 1
+    assert all(landmarks_covered(p, lay.landmark_array, SUCCESS_RADIUS) for p in final)
+    rows = task.reference_rows()
+    assert (rows["Experts (ground truth)"]["SR"], rows["Experts (ground truth)"]["CVR"]) \
+        == (1.0, 0.0)
+    # Straight to the landmarks crosses the disc and converges: the nominal controller
+    # violates in the true game.
+    assert rows["Experts (nominal)"]["CVR"] > 0.5 and rows["Experts (nominal)"]["SR"] == 0.0
+
+
+def test_identifiability_counts_are_consistent(task):
+    ident = task.identifiability()
+    true = torch.from_numpy(task.true)
+    classes = [ident.demonstrated, ident.required, ident.undetermined]
+    assert torch.equal(classes[0] | classes[1] | classes[2], true)  # they cover the truth
+    assert not (classes[0] & classes[1]).any() and not (classes[1] & classes[2]).any() \
+        and not (classes[0] & classes[2]).any()  # and partition it
+    assert ident.n_demonstrated + ident.n_required + ident.n_undetermined == int(true.sum())
+    # The experts avoid every true constraint that the nominal controller uses.
+    assert ident.n_demonstrated == 0 and ident.n_required == 5
+    record = ident.as_dict()
+    assert record["n_required"] == len(record["required"]) == 5
+    # The learned rows are annotated: FNR_required counts the misses among the required.
+    names = list(task.cost_basis.names)
+    rows = {"A": {"learners": [{"constraints": [names[j] for j in np.flatnonzero(task.true)]},
+                               {"constraints": []}, {"constraints": ["cell(1,3)"]}]},
+            "Experts (ground truth)": {"learners": [{"SR": 1.0}]}}
+    out = task.annotate(rows)
+    assert out["n_required"] == 5 and "seconds" in out
+    first, empty, start = rows["A"]["learners"]
+    assert first["FNR_required"] == 0.0 and empty["FNR_required"] == 1.0
+    # A cell of the start region is accrued (the demonstrations start there): learning
+    # it as a constraint contradicts the data.
+    assert start["contradictions"] == ["cell(1,3)"] and first["contradictions"] == []
+    assert "FNR_required" not in rows["Experts (ground truth)"]["learners"][0]
+
+
+def test_finer_cells_leave_a_true_constraint_undetermined():
+    """16 x 16 cells: 17 true constraints (16 cells under the disc and the proximity);
+    the classes still add up."""
+    cost = PositionCellBasis(n_agents=2, bounds=((-1.5, 1.5), (-1.5, 1.5)), n_per_axis=16,
+                             proximity_radius=0.4, state_dim=4)
+    t = tiny_task(cost_basis=cost, split=[6, 6], warmup_timesteps=0)
+    ident = t.identifiability()
+    assert int(t.true.sum()) == 17
+    assert ident.n_demonstrated + ident.n_required + ident.n_undetermined == 17
+    assert ident.n_required >= 1
+
+
+# ------------------------------------------------------------------ end to end
+def test_a_tiny_run_goes_through_the_runner(task, tmp_path):
+    """D-ICRL, C-ICRL, M(C)E-greedy (given D-ICRL's reward) and the reference rows."""
+    task = tiny_task(demos=task.demos, baseline=True, baseline_timesteps=20,
+                     baseline_max_constraints=1)
+    res = run_tiny(task, tmp_path)
+    methods = res["methods"]
+    assert list(methods) == ["D-ICRL", "C-ICRL", "M(C)E-greedy", "Experts (ground truth)",
+                             "Experts (nominal)"]
+    for name in ("D-ICRL", "C-ICRL", "M(C)E-greedy"):
+        for row in methods[name]["learners"]:
+            assert 0 <= row["SR"] <= 1 and 0 <= row["CVR"] <= 1
+            assert (row["SR"], row["CVR"]) == (row["SR_mean"], row["CVR_mean"])
+            assert 0 <= row["FPR"] <= 1 and 0 <= row["FNR"] <= 1
+            assert row["n_required"] == 5 and row["FNR_required"] is not None
+    assert len(res["history"]["M(C)E-greedy"]) >= 1
+    assert res["identifiability"]["n_required"] == 5
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert saved["identifiability"] == res["identifiability"]
+    for png in ("spread_demonstrations", "constraints_D-ICRL_1", "constraints_D-ICRL_2",
+                "constraints_C-ICRL_1", "constraints_MCE-greedy"):
+        assert (tmp_path / f"{png}.png").stat().st_size > 0
+    demos = load_continuous_demonstrations(tmp_path / "demos.npz")
+    assert demos == task.demos
+
+
+CONFIG_TINY = ["env.arena.max_steps=30", "eval_episodes=2", "n_demonstrations=4",
+               "split=[2,2]", "solver.warmup_timesteps=40", "solver.timesteps=20",
+               "solver.final_timesteps=20", "solver.final_checks=2",
+               "solver.n_eval_episodes=1", "solver.solver.learning_starts=20",
+               "solver.solver.batch_size=16", "solver.solver.net_arch=[16,16]",
+               "solver.solver.n_envs=2", "algo.outer_iterations=1", "algo.inner_steps=2",
+               "logger=none"]
+
+
+@pytest.mark.parametrize("cost", ["features/cost=position_cells",
+                                  "features/cost=frozen_network"])
+def test_the_mpe_quick_config_runs_end_to_end(cost, tmp_path):
+    """``experiment=mpe_quick`` (``env=mpe_spread``, ``features/reward=landmark_coverage``)
+    checked, built by experiments/common.py's dispatch and run through the runner as
+    ``experiments/train.py`` runs a simulated job, with either cost basis."""
+    from common import build, mpe_task, run_settings, trainer_spec  # experiments/ on the path
+    from config_checks import check_config
+    from tiny_train import compose_train
+
+    cfg = compose_train("experiment=mpe_quick", "env=mpe_spread",
+                        "features/reward=landmark_coverage", cost, *CONFIG_TINY)
+    check_config(cfg)  # every key known, every value in range
+    t = mpe_task(cfg)
+    assert isinstance(t, MPETask) and t.split == [2, 2]
+    assert not t.base.absorbing and t.base.ent_coef == 0.1
+    cells = cost.endswith("position_cells")
+    # A frozen network's features are positive on every start: D-ICRL says nothing can
+    # become a constraint.
+    with contextlib.nullcontext() if cells else pytest.warns(UserWarning, match="start"):
+        res = run_all_in_one(t, run_settings(cfg), trainer_spec(cfg), out=tmp_path,
+                             t_start=time.perf_counter(), logger=NullLogger(),
+                             communicator=lambda n: build(cfg.comm, n_learners=n))
+    rows = [r for m in ("D-ICRL", "C-ICRL") for r in res["methods"][m]["learners"]]
+    assert len(rows) == 3 and all(0 <= r["CVR"] <= 1 and 0 <= r["SR"] <= 1 for r in rows)
+    if cells:
+        assert int(t.true.sum()) == 5 and res["identifiability"]["n_required"] == 5
+        assert all(0 <= r["FPR"] <= 1 for r in rows)
+    else:  # a frozen network has no ground truth: FPR, FNR and the classes are null
+        assert t.true is None and t.cost_basis.dim == 32
+        assert res["identifiability"] is None
+        assert all(r["FPR"] is None and r["FNR_required"] is None for r in rows)
+
+
+def test_the_shipped_mpe_quick_config_composes_unchanged():
+    from config_checks import check_config
+    from tiny_train import compose_train
+
+    cfg = compose_train("experiment=mpe_quick")
+    check_config(cfg)
+    assert cfg.name == "mpe_quick" and list(cfg.split) == [10, 10]
+    assert cfg.solver.solver.absorbing is False
+
+
+# ------------------------------------------------------------------ bad input
+def demos_like(task: MPETask, **change) -> ContinuousDemonstrations:
+    d = task.demos
+    fields = dict(states=np.array(d.states), actions=np.array(d.actions),
+                  lengths=np.array(d.lengths))
+    fields.update(change)
+    return ContinuousDemonstrations(**fields)
+
+
+def test_demonstrations_that_do_not_fit_the_env_are_refused(task, tmp_path):
+    d = task.demos
+    with pytest.raises(ValueError, match=r"'states' has per-step shape \[2, 3\].*\[2, 4\]"):
+        tiny_task(demos=demos_like(task, states=np.array(d.states)[..., :3]))
+    three = np.concatenate([d.states, d.states[:, :, :1]], 2)
+    with pytest.raises(ValueError, match=r"'states' has per-step shape \[3, 4\]"):
+        tiny_task(demos=demos_like(task, states=three,
+                                   actions=np.concatenate([d.actions, d.actions[:, :, :1]],
+                                                          2)))
+    with pytest.raises(ValueError, match="'actions'.*joint action has 4"):
+        tiny_task(demos=demos_like(task, actions=np.concatenate([d.actions, d.actions], -1)))
+    wild = np.array(d.actions)
+    wild[0, 0, 0, 0] = 3.0
+    with pytest.raises(ValueError, match=r"outside the env's action box.*np.clip"):
+        tiny_task(demos=demos_like(task, actions=wild))
+    with pytest.raises(ValueError, match="split .* sums to 5, but there are 4"):
+        tiny_task(demos=d.subset(range(4)))
+    # A file is read with the env's dimensions: one for another game is refused by name.
+    path = save_continuous_demonstrations(tmp_path / "other.npz",
+                                          demos_like(task, states=np.array(d.states)[..., :3]))
+    with pytest.raises(ValueError, match="other.npz"):
+        tiny_task(demos=path)
+
+
+def test_a_cost_basis_out_of_range_or_of_the_wrong_width_is_refused(task):
+    linear = nn.Linear(8, 4)
+    with torch.no_grad():  # negative outputs: not bounded features
+        linear.weight.fill_(-1.0)
+        linear.bias.fill_(-1.0)
+    with pytest.raises(ValueError, match=r"cost_basis.*leave \[0, 1.0\].*ScaledSigmoid"):
+        tiny_task(demos=task.demos, cost_basis=ModuleBasis(module=linear, dim=4))
+    wide = ModuleBasis(module=bounded_mlp(8, 5, seed=0), dim=4)
+    with pytest.raises(ValueError, match="cost_basis.*returns 5 features per sample but "
+                                         "dim = 4"):
+        tiny_task(demos=task.demos, cost_basis=wide)
+
+    class Loud(nn.Module):  # not a checked basis: the task checks it itself
+        dim, max_value, names = 3, 1.0, ["a", "b", "c"]
+
+        def forward(self, states):
+            return torch.full((*states.shape[:-2], 3), 2.0, dtype=states.dtype)
+
+    with pytest.raises(ValueError, match=r"cost_basis Loud returned values in \[2, 2\], "
+                                         r"outside \[0, max_value=1.0\]"):
+        tiny_task(demos=task.demos, cost_basis=Loud())
+    cells = PositionCellBasis(n_agents=2, bounds=((0, 10), (0, 10)), proximity_radius=0.4)
+    with pytest.raises(ValueError, match=r"walls are at ±1.5"):
+        tiny_task(demos=task.demos, cost_basis=cells)
+
+
+def test_settings_the_spread_cannot_honour_are_refused(task):
+    with pytest.raises(ValueError, match="absorbing=False"):
+        tiny_task(demos=task.demos, solver={**TINY_SOLVER, "absorbing": True})
+    with pytest.raises(ValueError, match="final_score='penalised_return'"):
+        tiny_task(demos=task.demos, final_score="learned_success")
+    with pytest.raises(ValueError, match="landmarks=layout.landmarks"):
+        tiny_task(demos=task.demos,
+                  reward_basis=LandmarkRewardBasis(n_agents=2, landmarks=[[0, 1], [1, 1]]))
+    with pytest.raises(ValueError, match="eval_action"):
+        tiny_task(demos=task.demos, eval_action="greedy")
+    with pytest.raises(RuntimeError, match="give the experts time"):
+        tiny_task(env={"max_steps": 10})
+
+
+# ------------------------------------------------------------------ the reward basis
+def test_landmark_reward_basis_shapes_values_and_shares():
+    basis = LandmarkRewardBasis(n_agents=2, features=["closeness", "coverage"], sigma=0.5)
+    assert basis.names == ["landmark0", "landmark1", "agent0/landmark0", "agent0/landmark1",
+                           "agent1/landmark0", "agent1/landmark1"]
+    states = torch.zeros(3, 5, 2, 4, dtype=torch.float64)  # [..., N, d_s]
+    states[..., 0, :2] = torch.tensor([0.5, 0.0])  # agent 0 on landmark 0
+    states[..., 1, :2] = torch.tensor([0.5, 1.0])  # agent 1 one unit off landmark 0
+    phi = basis(states)
+    assert phi.shape == (3, 5, 6) and phi.dtype == torch.float64
+    d11 = float(np.hypot(0.5, 1.0))
+    want = torch.tensor([1.0, np.exp(-0.5 / 0.5), 1.0, np.exp(-0.5 / 0.5), np.exp(-1 / 0.5),
+                         np.exp(-d11 / 0.5)], dtype=torch.float64)
+    torch.testing.assert_close(phi[0, 0], want)
+    shares = basis.agent_shares()
+    assert shares.shape == (6, 2)
+    torch.testing.assert_close(shares.sum(1), torch.ones(6, dtype=torch.float64))
+    assert shares[0].tolist() == [0.5, 0.5] and shares[3].tolist() == [1.0, 0.0] \
+        and shares[4].tolist() == [0.0, 1.0]
+    with pytest.raises(ValueError, match="features must be distinct names"):
+        LandmarkRewardBasis(n_agents=2, features=["coverage", "goal"])
+    with pytest.raises(ValueError, match="sigma must be a positive length"):
+        LandmarkRewardBasis(n_agents=2, sigma=0.0)
+
+
+# ------------------------------------------------ the README's "Your own environment"
+def test_the_readme_own_environment_code_runs_at_tiny_scale(tmp_path):
+    readme = (ROOT / "README.md").read_text()
+    text = readme.split("\n## Your own environment\n", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    assert len(blocks) == 1
+    code = blocks[0]
+    assert len(code.splitlines()) <= 60
+    scale = re.compile(r"^STEPS, ITERATIONS, EPISODES, OUT = .*$", flags=re.M)
+    assert len(scale.findall(code)) == 1, "keep the one line that sets the scale"
+    code = scale.sub(f"STEPS, ITERATIONS, EPISODES, OUT = 60, 1, 4, Path({str(tmp_path)!r})",
+                     code)
+    # Toy SAC sizes, as everywhere in the tests (the draft keeps SB3's defaults).
+    code = code.replace("scale_observations=True)",
+                        "scale_observations=True, learning_starts=20, batch_size=16, "
+                        "net_arch=(16, 16))")
+    namespace: dict = {"__name__": "own_environment"}
+    exec(compile(code, "README.md (Your own environment)", "exec"), namespace)  # noqa: S102
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert len(res["methods"]["D-ICRL"]["learners"]) == 2
+    assert (tmp_path / "demos.npz").exists() and (tmp_path / "constraints_D-ICRL_1.png").exists()
