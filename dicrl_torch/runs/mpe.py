@@ -64,7 +64,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from matplotlib.patches import Circle, Rectangle
 
 from dicrl_torch.algos.identifiability import Identifiability, fnr_required
 from dicrl_torch.demos.continuous import (
@@ -80,16 +79,16 @@ from dicrl_torch.envs.mpe import (
     SpreadLayout,
     ViaPointController,
     landmarks_covered,
+    render_spread,
     run_episode,
     sample_starts,
 )
-from dicrl_torch.envs.parallel import agg_axes, axes_image
 from dicrl_torch.features.continuous import PositionCellBasis
 from dicrl_torch.features.mpe import LandmarkRewardBasis
 from dicrl_torch.runs.continuous import SACTask, derived_seed
 
 __all__ = ["ANNOTATIONS", "ControllerPolicy", "MPETask", "build_mpe_task",
-           "render_spread_constraints", "spread_joint_env", "spread_start_states",
+           "spread_joint_env", "spread_start_states",
            "spread_success"]
 
 ANNOTATIONS = ("FNR_required", "n_demonstrated", "n_required", "n_undetermined",
@@ -168,45 +167,6 @@ def spread_start_states(layout: SpreadLayout, n: int = 4096, seed: int = 0) -> n
     rng = np.random.default_rng(seed)
     pos = np.stack([sample_starts(layout, rng) for _ in range(n)])  # [n, N, 2]
     return np.concatenate([pos, np.zeros_like(pos)], -1)
-
-
-def render_spread_constraints(
-    layout: SpreadLayout, *, cells: np.ndarray | None = None,
-    trajectories: Sequence[np.ndarray] = (), title: str = "",
-) -> np.ndarray:
-    """The arena with constraint cells shaded and hatched (red) over the disc, the
-    landmarks (with their success radius), the start region (dashed) and trajectories,
-    as an ``H x W x 3`` uint8 image (a private Agg canvas).
-
-    Args:
-        layout: the geometry.
-        cells: ``[K, 4]`` rectangles ``(x0, y0, x1, y1)`` to mark (e.g.
-            ``PositionCellBasis.cell_rectangles()[mask]``), or None.
-        trajectories: arrays ``[T, N, 2]`` of positions.
-        title: figure title.
-    """
-    ax = agg_axes((4.0, 4.0))
-    for x0, y0, x1, y1 in (() if cells is None else np.asarray(cells)):
-        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, color="red", alpha=0.25, lw=0,
-                               zorder=2))
-        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, hatch="xx",
-                               ec="red", lw=0, zorder=2))
-    x0, y0, x1, y1 = layout.start_region
-    ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ls="--", ec="0.5"))
-    ax.add_patch(Circle(layout.disc_centre, layout.disc_radius, color="0.35", zorder=1))
-    for lm in layout.landmarks:
-        ax.add_patch(Circle(lm, SUCCESS_RADIUS, fill=False, ec="k", zorder=3))
-        ax.plot(*lm, "kx", ms=6, zorder=3)
-    colours = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2")
-    for traj in trajectories:
-        for i in range(traj.shape[1]):
-            ax.plot(traj[:, i, 0], traj[:, i, 1], color=colours[i % len(colours)], lw=0.8,
-                    alpha=0.8, zorder=4)
-    h = layout.arena_half_width
-    ax.set_xlim(-h, h)
-    ax.set_ylim(-h, h)
-    ax.tick_params(labelsize=6)
-    return axes_image(ax, title)
 
 
 def _check_basis(basis: Any, role: str, states: np.ndarray) -> None:
@@ -468,7 +428,7 @@ class MPETask(SACTask):
         evaluated last (none for a row taken from a checkpoint)."""
         mask = self.learned_mask(row)
         paths, self._paths = self._paths[:9], []
-        return render_spread_constraints(
+        return render_spread(
             self.layout, cells=self._cells(mask), trajectories=paths,
             title=self._title(f"{label}: learned constraints (hatched)", mask))
 
@@ -555,7 +515,7 @@ class MPETask(SACTask):
         true = self.true if self.true is not None else np.zeros(self.cost_basis.dim, bool)
         paths = [s[:int(n) + 1, :, :2] for s, n in zip(self.demos.states, self.demos.lengths,
                                                          strict=True)]
-        return {"spread_demonstrations": render_spread_constraints(
+        return {"spread_demonstrations": render_spread(
             self.layout, cells=self._cells(true), trajectories=paths,
             title=self._title(f"{experiment}: {self.demos.n_episodes} demonstrations and "
                               f"the true constraints (hatched)", true))}
