@@ -275,8 +275,7 @@ def is_drone_run(cfg) -> bool:
 def is_mpe_run(cfg) -> bool:
     """The constrained MPE spread (``env=mpe_spread``): a continuous game like the arena,
     told apart by its layout."""
-    return is_drone_run(cfg) and OmegaConf.select(
-        cfg, "env.layout._target_", default=None) == "dicrl_torch.envs.mpe.SpreadLayout"
+    return is_drone_run(cfg) and env_game(cfg.env) == "mpe_spread"
 
 
 def is_simulated(cfg) -> bool:
@@ -286,15 +285,20 @@ def is_simulated(cfg) -> bool:
 # ---------------------------------------------------------------- options of the environment
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 # The environment kinds (the ``env_kind`` of the classes) and how the messages name them.
-KIND_WORDS = {"grid": "the grid world", "continuous": "the drone arena"}
+KIND_WORDS = {"grid": "the grid world",
+              "continuous": "the continuous games (the drone arena, the MPE spread)"}
 # The config groups whose options serve one kind of environment, and what an option is.
+# Bases built for one continuous game (their class's ``game``) and how messages name it.
+GAME_WORDS = {"drones": "the drone arena", "mpe_spread": "the MPE spread"}
+SPREAD_LAYOUT = "dicrl_torch.envs.mpe.SpreadLayout"
 KIND_GROUPS = {"features/reward": "a basis", "features/cost": "a basis",
                "solver": "a solver", "baselines": "baselines"}
 
 
 def env_kind(env) -> str:
     """The kind of the environment node ``env`` (``cfg.env``, or an env option):
-    ``"continuous"`` (the drone arena, ``arena``) or ``"grid"``."""
+    ``"continuous"`` (a game with ``arena`` settings: the drones, the MPE spread) or
+    ``"grid"``."""
     return "continuous" if OmegaConf.select(env, "arena", default=None) is not None else "grid"
 
 
@@ -376,17 +380,40 @@ def _env_name(cfg, kind: str) -> str:
     return f"env={same[0]}" if len(same) == 1 else "env=" + " or env=".join(envs)
 
 
+def env_game(env) -> str | None:
+    """The game of a continuous environment node (``"drones"`` or ``"mpe_spread"``), for
+    the bases built for one game only (their class's ``game``); None for the grid world."""
+    if OmegaConf.select(env, "layout._target_", default=None) == SPREAD_LAYOUT:
+        return "mpe_spread"
+    return "drones" if env_kind(env) == "continuous" else None
+
+
+def option_game(group: str, node) -> str | None:
+    """The one game the option ``node`` of ``group`` is built for (its class's ``game``),
+    or None: any game of its kind."""
+    target = _target_of(node) if group != "baselines" else None
+    if target is None:
+        return None
+    try:
+        return getattr(get_class(target), "game", None)
+    except Exception:  # noqa: BLE001 - an import failure is reported by the key checks
+        return None
+
+
 def misfit_options(cfg) -> dict[str, str]:
     """The options of ``KIND_GROUPS`` that serve another kind of environment than the
-    configured one, each with its problem: the config path of the option's node ->
-    what it is, whose, and the options of the group that fit."""
-    kind, problems = env_kind(cfg.env), {}
+    configured one, or another game of its kind, each with its problem: the config path
+    of the option's node -> what it is, whose, and the options of the group that fit."""
+    kind, game, problems = env_kind(cfg.env), env_game(cfg.env), {}
     defaults = None
     for group, noun in KIND_GROUPS.items():
         path = group.replace("/", ".")
         node = OmegaConf.select(cfg, path, default=None)
         theirs = option_kind(group, node)
-        if theirs is None or theirs == kind:
+        if theirs is None:
+            continue
+        their_game = option_game(group, node) if theirs == kind else None
+        if theirs == kind and their_game in (None, game):
             continue
         options = _options(group)
         defaults = _default_options() if defaults is None else defaults
@@ -396,14 +423,17 @@ def misfit_options(cfg) -> dict[str, str]:
             if group == "baselines":  # rows of its own: the rows' check names the fix
                 continue
             name = f"{path}._target_={_target_of(node)}"
-        fit = sorted((o for o, n in options.items() if option_kind(group, n) == kind),
+        fit = sorted((o for o, n in options.items() if option_kind(group, n) == kind
+                      and option_game(group, n) in (None, game)),
                      key=lambda o: ((group, o) not in defaults, o))
         fit += [o for o, n in options.items() if option_kind(group, n) is None]
         fix = (f"use {group}={fit[0]}" + (f" (or {', '.join(fit[1:])})" if fit[1:] else "")
                if fit else f"no {group} option serves it; add one")
         verb = "are" if group == "baselines" else "is"
-        problems[path] = (f"{name} {verb} {noun} of {KIND_WORDS.get(theirs, theirs)}; with "
-                          f"{_env_name(cfg, kind)} {fix}.")
+        whose = (KIND_WORDS.get(theirs, theirs) if their_game is None
+                 else f"{GAME_WORDS.get(their_game, their_game)} only")
+        problems[path] = (f"{name} {verb} {noun} of {whose}; with {_env_name(cfg, kind)} "
+                          f"{fix}.")
     return problems
 
 

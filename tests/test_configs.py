@@ -237,7 +237,8 @@ def test_own_shard_files_reproduce_the_sampled_run(tmp_path):
 FITS_BOTH = {("baselines", "none")}
 KIND_GROUPS = {"features/reward": "is a basis", "features/cost": "is a basis",
                "solver": "is a solver", "baselines": "are baselines"}
-WORLDS = {"grid": "the grid world", "drones": "the drone arena"}
+WORLDS = {"grid": "the grid world",
+          "drones": "the continuous games (the drone arena, the MPE spread)"}
 
 
 def world_of(group: str, option: str) -> str | None:
@@ -247,9 +248,32 @@ def world_of(group: str, option: str) -> str | None:
     return "drones" if any(m in text for m in DRONE_MARKERS) else "grid"
 
 
+GAMES = {"drones": "the drone arena", "mpe_spread": "the MPE spread"}
+
+
+def game_of(group: str, option: str) -> str | None:
+    """The one continuous game an option is built for (None: any of its world's): an env
+    option's own game; a basis's class ``game``."""
+    text = (CONFIGS / group / f"{option}.yaml").read_text()
+    if group == "env":
+        return "mpe_spread" if "SpreadLayout" in text else "drones" if "arena:" in text else None
+    if not group.startswith("features/"):
+        return None
+    from hydra.utils import get_class
+
+    return getattr(get_class(OmegaConf.load(CONFIGS / group / f"{option}.yaml")["_target_"]),
+                   "game", None)
+
+
+def fits(env: str, group: str, option: str) -> bool:
+    return world_of(group, option) == world_of("env", env) \
+        and game_of(group, option) in (None, game_of("env", env))
+
+
 def compose_for(env: str, *overrides: str):
-    """``env`` with the experiment of its world (quick, or table2_quick for the arena)."""
-    experiment = "table2_quick" if world_of("env", env) == "drones" else "quick"
+    """``env`` with the experiment of its game (quick, table2_quick or mpe_quick)."""
+    experiment = {"drones": "table2_quick", "mpe_spread": "mpe_quick"}.get(
+        game_of("env", env), "quick")
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         return compose(config_name="train",
                        overrides=[f"experiment={experiment}", f"env={env}", *overrides])
@@ -258,8 +282,7 @@ def compose_for(env: str, *overrides: str):
 def combinations(fit: bool) -> list[tuple[str, str, str]]:
     return [(env, group, option) for env in group_options("env") for group in KIND_GROUPS
             for option in group_options(group)
-            if world_of(group, option) is not None
-            and (world_of(group, option) == world_of("env", env)) == fit]
+            if world_of(group, option) is not None and fits(env, group, option) == fit]
 
 
 @pytest.mark.parametrize("env,group,option", combinations(fit=False))
@@ -271,11 +294,14 @@ def test_an_option_of_the_other_environment_is_refused(env, group, option):
     text = str(info.value)
     # one problem: the option's own keys are not checked against the wrong class or rules
     assert text.startswith("1 problem(s) in the configuration, nothing was computed:"), text
-    theirs = WORLDS[world_of(group, option)]
+    if world_of(group, option) == world_of("env", env):  # the same world, another game
+        theirs = GAMES[game_of(group, option)] + " only"
+    else:
+        theirs = WORLDS[world_of(group, option)]
     want = f"{group}={option} {KIND_GROUPS[group]} of {theirs}; with env={env} use {group}="
     assert want in text, text
     fix = text.split(want, 1)[1].split(" ", 1)[0].rstrip(".")
-    assert world_of(group, fix) == world_of("env", env), text
+    assert fits(env, group, fix), text
 
 
 @pytest.mark.parametrize("env,group,option", combinations(fit=True)
@@ -301,7 +327,8 @@ def test_the_cli_refuses_a_misfit_before_any_computation(tmp_path):
         [sys.executable, str(TRAIN), f"hydra.run.dir={tmp_path}", "experiment=quick",
          "features/reward=fourier"], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert out.returncode == 2, out.stderr[-3000:]
-    assert ("features/reward=fourier is a basis of the drone arena; with env=gridworld use "
+    assert ("features/reward=fourier is a basis of the continuous games (the drone arena, the MPE "
+            "spread); with env=gridworld use "
             "features/reward=goal_closeness.") in out.stderr
     assert "Traceback" not in out.stderr
     assert {p.name for p in tmp_path.iterdir()} <= {".hydra", "train.log"}  # nothing else

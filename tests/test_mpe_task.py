@@ -287,6 +287,19 @@ def test_a_cost_basis_out_of_range_or_of_the_wrong_width_is_refused(task):
         tiny_task(demos=task.demos, cost_basis=cells)
 
 
+def test_a_basis_built_for_the_drone_arena_is_refused(task):
+    """The drone bases share the spread's state shape ([2, 4]) but not its geometry: a
+    silent wrong answer unless refused."""
+    from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
+
+    with pytest.raises(ValueError, match=r"cost basis CellOccupancyCostBasis is built on "
+                                         r"the geometry of the game 'drones', not of "
+                                         r"'mpe_spread'.*PositionCellBasis"):
+        tiny_task(demos=task.demos, cost_basis=CellOccupancyCostBasis())
+    with pytest.raises(ValueError, match="reward basis DoorLocationRewardBasis .* 'drones'"):
+        tiny_task(demos=task.demos, reward_basis=DoorLocationRewardBasis())
+
+
 def test_settings_the_spread_cannot_honour_are_refused(task):
     with pytest.raises(ValueError, match="absorbing=False"):
         tiny_task(demos=task.demos, solver={**TINY_SOLVER, "absorbing": True})

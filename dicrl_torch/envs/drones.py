@@ -56,6 +56,7 @@ import torch
 from gymnasium import spaces
 from matplotlib.patches import Circle, Rectangle
 
+from dicrl_torch.checks import check_positive
 from dicrl_torch.envs.parallel import CheckedParallelEnv, agg_axes, axes_image
 
 # ---------------------------------------------------------------------------- layout
@@ -190,14 +191,6 @@ def too_close(pos: Any, radius: float = PROXIMITY_RADIUS) -> Any:
 
 
 # ------------------------------------------------------------------------- dynamics
-def _check_positive(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise ValueError(f"{name} must be a positive number, got {value!r}.")
-    if not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}.")
-    return float(value)
-
-
 @dataclass(frozen=True)
 class DroneDynamics:
     """First-order velocity response of one planar drone, vectorised.
@@ -220,7 +213,7 @@ class DroneDynamics:
 
     def __post_init__(self) -> None:
         for name in ("dt", "tau", "max_speed"):
-            object.__setattr__(self, name, _check_positive(name, getattr(self, name)))
+            object.__setattr__(self, name, check_positive(name, getattr(self, name)))
         if isinstance(self.noise_std, bool) or not np.isfinite(self.noise_std) \
                 or self.noise_std < 0:
             raise ValueError(f"noise_std must be a finite number >= 0, got {self.noise_std!r}.")
@@ -231,7 +224,7 @@ class DroneDynamics:
                 f"overshoot the command; use dt <= tau."
             )
         limit = 1.5 * self.max_speed if self.vel_limit is None else self.vel_limit
-        limit = _check_positive("vel_limit", limit)
+        limit = check_positive("vel_limit", limit)
         if limit < self.max_speed:
             raise ValueError(
                 f"vel_limit={limit} is below max_speed={self.max_speed}; the commanded "
@@ -393,7 +386,7 @@ class DroneArena(CheckedParallelEnv):
         self.constrained = bool(constrained)
         self.max_steps = int(max_steps)
         self.dynamics = dynamics
-        self.proximity_radius = _check_positive("proximity_radius", proximity_radius)
+        self.proximity_radius = check_positive("proximity_radius", proximity_radius)
         self.render_mode = render_mode
         self.possible_agents = list(AGENTS)
         self._index = {a: i for i, a in enumerate(self.possible_agents)}

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from dicrl_torch.checks import check_int, check_positive
 from dicrl_torch.features.base import EnvKind
 from dicrl_torch.io import atomic_write
 
@@ -47,22 +48,8 @@ __all__ = [
 ]
 
 
-def _positive(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating) \
-            or not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}.")
-    return float(value)
-
-
-def _positive_int(name: str, value: Any) -> int:
-    if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer) \
-            or value < 1:
-        raise ValueError(f"{name} must be a positive int, got {value!r}.")
-    return int(value)
-
-
-def _optional_positive_int(name: str, value: Any) -> int | None:
-    return None if value is None else _positive_int(name, value)
+def _optional_int(name: str, value: Any) -> int | None:
+    return None if value is None else check_int(name, value)
 
 
 class ContinuousFeatureBasis(nn.Module):
@@ -82,6 +69,9 @@ class ContinuousFeatureBasis(nn.Module):
     names: list[str]
     # experiments/config_checks.py refuses a basis whose kind is not the configured env's.
     env_kind: EnvKind = "continuous"
+    game: str | None = None
+    """The one game whose geometry the basis is built on (e.g. ``"drones"``), or None:
+    any game of its states' shape. Config checks and the SAC tasks refuse it elsewhere."""
     n_agents: int | None = None
     state_dim: int | None = None
     action_dim: int | None = None
@@ -114,7 +104,7 @@ class ContinuousFeatureBasis(nn.Module):
             n_agents: ``N``; default the basis's own ``n_agents`` (one of the two must be
                 known, and they must agree).
         """
-        n = self.n_agents if n_agents is None else _positive_int("n_agents", n_agents)
+        n = self.n_agents if n_agents is None else check_int("n_agents", n_agents)
         if n is None or (self.n_agents is not None and n != self.n_agents):
             raise ValueError(f"{self.label}: agent_shares needs the number of agents: pass "
                              f"n_agents (the basis was built for n_agents={self.n_agents}, "
@@ -223,7 +213,7 @@ class ScaledSigmoid(nn.Module):
 
     def __init__(self, max_value: float = 1.0) -> None:
         super().__init__()
-        self.max_value = _positive("max_value", max_value)
+        self.max_value = check_positive("max_value", max_value)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.max_value * torch.sigmoid(x)
@@ -241,9 +231,9 @@ def bounded_mlp(in_features: int, out_features: int, hidden: Sequence[int] = (64
     The weights are drawn from a ``torch.Generator`` seeded with ``seed`` (PyTorch's
     default uniform ``±1/sqrt(fan_in)`` init), never from the global generator.
     """
-    widths = [_positive_int("in_features", in_features),
-              *(_positive_int("hidden", h) for h in hidden),
-              _positive_int("out_features", out_features)]
+    widths = [check_int("in_features", in_features),
+              *(check_int("hidden", h) for h in hidden),
+              check_int("out_features", out_features)]
     g = torch.Generator().manual_seed(int(seed))
     layers: list[nn.Module] = []
     for i, (a, b) in enumerate(itertools.pairwise(widths)):
@@ -334,10 +324,10 @@ class ModuleBasis(ContinuousFeatureBasis):
             raise TypeError(f"ModuleBasis: module must be an nn.Module, got "
                             f"{type(module).__name__}; build the network first (or use "
                             f"ModuleBasis.from_file(path, module_factory, ...)).")
-        dim = _positive_int("dim", dim)
-        self.max_value = _positive("max_value", max_value)
-        self.n_agents = _optional_positive_int("n_agents", n_agents)
-        self.state_dim = _optional_positive_int("state_dim", state_dim)
+        dim = check_int("dim", dim)
+        self.max_value = check_positive("max_value", max_value)
+        self.n_agents = _optional_int("n_agents", n_agents)
+        self.state_dim = _optional_int("state_dim", state_dim)
         if weights is not None:
             load_module_weights(module, weights)
         self.net = module.requires_grad_(False).eval()
@@ -423,10 +413,10 @@ class RandomFourierBasis(ContinuousFeatureBasis):
                  bandwidth: float | Sequence[float] = 1.0, seed: int = 0,
                  max_value: float = 1.0) -> None:
         super().__init__()
-        self.n_agents = _positive_int("n_agents", n_agents)
-        self.state_dim = _positive_int("state_dim", state_dim)
-        n_features = _positive_int("n_features", n_features)
-        self.max_value = _positive("max_value", max_value)
+        self.n_agents = check_int("n_agents", n_agents)
+        self.state_dim = check_int("state_dim", state_dim)
+        n_features = check_int("n_features", n_features)
+        self.max_value = check_positive("max_value", max_value)
         if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
             raise ValueError(f"seed must be a non-negative int, got {seed!r}.")
         bw = np.atleast_1d(np.asarray(bandwidth, dtype=np.float64))
@@ -434,7 +424,7 @@ class RandomFourierBasis(ContinuousFeatureBasis):
             raise ValueError(f"bandwidth must be one number or {self.state_dim} (one per "
                              f"state component), got {len(bw)}.")
         for b in bw:
-            _positive("bandwidth", b)
+            check_positive("bandwidth", b)
         self.bandwidth = tuple(float(b) for b in bw)
         g = torch.Generator().manual_seed(int(seed))
         scale = torch.from_numpy(np.broadcast_to(bw, (self.state_dim,)).copy())
@@ -489,8 +479,8 @@ class PositionCellBasis(ContinuousFeatureBasis):
                  obstacle_radius: float | Sequence[float] | None = None,
                  min_distance: float | None = None) -> None:
         super().__init__()
-        self.n_agents = _positive_int("n_agents", n_agents)
-        self.state_dim = _optional_positive_int("state_dim", state_dim)
+        self.n_agents = check_int("n_agents", n_agents)
+        self.state_dim = _optional_int("state_dim", state_dim)
         b = np.asarray(bounds, dtype=np.float64)
         if b.shape != (2, 2) or not np.isfinite(b).all() or not (b[:, 0] < b[:, 1]).all():
             raise ValueError(f"bounds must be ((x_lo, x_hi), (y_lo, y_hi)) with lo < hi, got "
@@ -500,8 +490,8 @@ class PositionCellBasis(ContinuousFeatureBasis):
             else tuple(n_per_axis)
         if len(n) != 2:
             raise ValueError(f"n_per_axis must be an int or (nx, ny), got {n_per_axis!r}.")
-        self.nx, self.ny = (_positive_int("n_per_axis", v) for v in n)
-        self.proximity_radius = _positive("proximity_radius", proximity_radius)
+        self.nx, self.ny = (check_int("n_per_axis", v) for v in n)
+        self.proximity_radius = check_positive("proximity_radius", proximity_radius)
         if isinstance(position_columns, slice):  # e.g. slice(0, 2) from Python code
             position_columns = range(position_columns.start or 0, position_columns.stop,
                                      position_columns.step or 1)

@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from dicrl_torch.checks import check_int, check_positive
 from dicrl_torch.envs.drones import (
     CELL_SIZE,
     GRID_CELLS,
@@ -39,7 +40,7 @@ from dicrl_torch.envs.drones import (
     in_own_door,
     obstacle_cell_mask,
 )
-from dicrl_torch.features.continuous import ContinuousFeatureBasis, _positive, _positive_int
+from dicrl_torch.features.continuous import ContinuousFeatureBasis
 
 
 class DroneFeatureBasis(ContinuousFeatureBasis):
@@ -57,6 +58,7 @@ class DroneFeatureBasis(ContinuousFeatureBasis):
     state_dim: int = 4
     action_dim: int = 2
     agent_prefix: str = "drone"  # drone i's own features are named drone<i>/...
+    game: str = "drones"  # built on the arena's geometry: no other game's basis
 
     def compute(self, states: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         """``[..., 2, 4]`` checked joint states to ``[..., l]`` features."""
@@ -91,7 +93,7 @@ class CellOccupancyCostBasis(DroneFeatureBasis):
 
     def __init__(self, proximity_radius: float = PROXIMITY_RADIUS) -> None:
         super().__init__()
-        self.proximity_radius = _positive("proximity_radius", proximity_radius)
+        self.proximity_radius = check_positive("proximity_radius", proximity_radius)
         G = GRID_CELLS
         self.names = [f"drone{i}/cell({c % G},{c // G})" for i in range(N_DRONES)
                       for c in range(G * G)] + ["proximity"]
@@ -139,10 +141,10 @@ class RBFCostBasis(DroneFeatureBasis):
     def __init__(self, n_per_axis: int = GRID_CELLS, width: float | None = None,
                  proximity_radius: float = PROXIMITY_RADIUS) -> None:
         super().__init__()
-        n = _positive_int("n_per_axis", n_per_axis)
+        n = check_int("n_per_axis", n_per_axis)
         spacing = ROOM_SIZE / n
-        self.width = _positive("width", 0.5 * spacing if width is None else width)
-        self.proximity_radius = _positive("proximity_radius", proximity_radius)
+        self.width = check_positive("width", 0.5 * spacing if width is None else width)
+        self.proximity_radius = check_positive("proximity_radius", proximity_radius)
         self.n_per_axis = n
         k = (torch.arange(n, dtype=torch.float64) + 0.5) * spacing
         cy, cx = torch.meshgrid(k, k, indexing="ij")  # index ky * n + kx
@@ -202,11 +204,11 @@ class DoorLocationRewardBasis(DroneFeatureBasis):
     def __init__(self, coefficient: float = 1.0, closeness: str = "linear",
                  closeness_length: float = 1.5) -> None:
         super().__init__()
-        self.coefficient = _positive("coefficient", coefficient)
+        self.coefficient = check_positive("coefficient", coefficient)
         if closeness not in self.CLOSENESS:
             raise ValueError(f"closeness must be one of {self.CLOSENESS}, got {closeness!r}.")
         self.closeness = closeness
-        self.closeness_length = _positive("closeness_length", closeness_length)
+        self.closeness_length = check_positive("closeness_length", closeness_length)
         self.max_value = self.coefficient
         self.names = [f"drone{i}/{f}" for i in range(N_DRONES) for f in self.FEATURES]
         starts = torch.tensor(NOMINAL_STARTS, dtype=torch.float64)
@@ -242,7 +244,7 @@ class FourierRewardBasis(DroneFeatureBasis):
 
     def __init__(self, order: int = 2) -> None:
         super().__init__()
-        order = _positive_int("order", order)
+        order = check_int("order", order)
         self.order = order
         k = torch.arange(order + 1, dtype=torch.float64)
         ky, kx = torch.meshgrid(k, k, indexing="ij")

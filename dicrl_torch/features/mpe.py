@@ -63,6 +63,8 @@ class LandmarkRewardBasis(ContinuousFeatureBasis):
         ValueError: bad arguments (naming the value and the fix).
     """
 
+    game = "mpe_spread"  # its default landmarks are the spread's layout
+
     def __init__(self, *, n_agents: int, landmarks: Any = None, sigma: float = 0.6,
                  features: Sequence[str] = ("coverage",),
                  position_columns: Sequence[int] = (0, 1),

@@ -39,6 +39,7 @@ import torch
 from dicrl_torch.algos.dicrl import DICRL
 from dicrl_torch.algos.greedy import SACGreedyConstraintInference
 from dicrl_torch.algos.models import SACLearnerModel
+from dicrl_torch.checks import check_finite, check_int
 from dicrl_torch.demos import partition_demonstrations
 from dicrl_torch.demos.continuous import save_continuous_demonstrations
 from dicrl_torch.envs.parallel import agg_axes, axes_image
@@ -56,19 +57,6 @@ def derived_seed(seed: int, *keys: int) -> int:
     """An independent stream per purpose (learner, C-ICRL, evaluation) from one seed: the
     one derivation of every continuous task's streams."""
     return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
-
-
-def _count(name: str, value: Any, least: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < least:
-        raise ValueError(f"{name} must be an int >= {least}, got {value!r}.")
-    return int(value)
-
-
-def _finite(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.integer
-                                                 | np.floating) or not np.isfinite(value):
-        raise ValueError(f"{name} must be a finite number, got {value!r}.")
-    return float(value)
 
 
 class SACTask:
@@ -110,6 +98,9 @@ class SACTask:
     """
 
     columns: tuple[str, ...] = ("FPR", "FNR", "CVR", "SR")
+    game: str | None = None
+    """The game a subclass is for (a basis built for another game's geometry, its
+    ``game``, is refused); None: a user's own game, which takes only game-free bases."""
 
     def __init__(self, *, solver, demos, split: Sequence[int], seed: int,
                  true_constraints: Any = None, eval_episodes: int = 100,
@@ -126,40 +117,48 @@ class SACTask:
 
         self.base = solver
         self.reward_basis, self.cost_basis = solver.reward_basis, solver.cost_basis
+        for role, basis in (("reward", self.reward_basis), ("cost", self.cost_basis)):
+            built_for = getattr(basis, "game", None)
+            if built_for is not None and built_for != self.game:
+                raise ValueError(
+                    f"The {role} basis {type(basis).__name__} is built on the geometry of "
+                    f"the game {built_for!r}, not of {self.game or 'this game'!r}; give a "
+                    f"basis of this game (e.g. PositionCellBasis over its bounds, or your "
+                    f"own ContinuousFeatureBasis).")
         demos = as_continuous(demos, solver.spec)  # refused, naming the fix, if unfit
         if isinstance(split, str | bytes) or not isinstance(split, Sequence) or not split:
             raise ValueError(f"split must be a non-empty list of positive ints (episodes "
                              f"per learner), got {split!r}; e.g. split=[10, 10].")
-        self.split = [_count("split entries", m) for m in split]
+        self.split = [check_int("split entries", m) for m in split]
         if sum(self.split) != demos.n_trajectories:
             raise ValueError(f"split {self.split} sums to {sum(self.split)}, but there are "
                              f"{demos.n_trajectories} demonstrations; make them agree.")
-        self.seed = _count("seed", seed, 0)
-        self.eval_episodes = _count("eval_episodes", eval_episodes)
+        self.seed = check_int("seed", seed, 0)
+        self.eval_episodes = check_int("eval_episodes", eval_episodes)
         if eval_action not in EVAL_ACTIONS:
             raise ValueError(f"eval_action must be one of {list(EVAL_ACTIONS)}, got "
                              f"{eval_action!r}.")
         self.eval_action = str(eval_action)
-        self.timesteps = _count("timesteps", timesteps, 0)
-        self.n_eval_episodes = _count("n_eval_episodes", n_eval_episodes)
-        self.warmup_timesteps = _count("warmup_timesteps", warmup_timesteps, 0)
-        self.eta0 = torch.full((solver.l_r + 1,), _finite("init_reward_weights",
+        self.timesteps = check_int("timesteps", timesteps, 0)
+        self.n_eval_episodes = check_int("n_eval_episodes", n_eval_episodes)
+        self.warmup_timesteps = check_int("warmup_timesteps", warmup_timesteps, 0)
+        self.eta0 = torch.full((solver.l_r + 1,), check_finite("init_reward_weights",
                                                           init_reward_weights),
                                dtype=torch.float64)
-        self.eta0[-1] = _finite("init_multiplier", init_multiplier)
-        cw0 = _finite("init_cost_weights", init_cost_weights)
+        self.eta0[-1] = check_finite("init_multiplier", init_multiplier)
+        cw0 = check_finite("init_cost_weights", init_cost_weights)
         if not 0.0 <= cw0 <= 1.0:
             raise ValueError(f"init_cost_weights must lie in [0, 1], got {cw0}.")
         self.cw0 = torch.full((solver.l_c,), cw0, dtype=torch.float64)
         final_timesteps = self.timesteps if final_timesteps is None else final_timesteps
-        checks = _count("final_checks", final_checks)
+        checks = check_int("final_checks", final_checks)
         if final_score not in FINAL_SCORES:
             raise ValueError(f"final_score must be one of {list(FINAL_SCORES)}, got "
                              f"{final_score!r}.")
-        self.final = dict(timesteps=_count("final_timesteps", final_timesteps, checks),
-                          checks=checks, restarts=_count("final_restarts", final_restarts),
+        self.final = dict(timesteps=check_int("final_timesteps", final_timesteps, checks),
+                          checks=checks, restarts=check_int("final_restarts", final_restarts),
                           score=str(final_score))
-        self.threshold = _finite("threshold", threshold)
+        self.threshold = check_finite("threshold", threshold)
         if not 0.0 < self.threshold <= 1.0:
             raise ValueError(f"threshold must lie in (0, 1], got {threshold!r}.")
         if true_constraints is None:

@@ -53,6 +53,8 @@ class DroneTask(SACTask):
             ``baseline*``).
     """
 
+    game = "drones"
+
     def __init__(self, *, solver, reward_basis, cost_basis, split: Sequence[int], seed: int,
                  final_score: str = "learned_success", **settings) -> None:
         # The planner flies its pairs in the default arena (30 s): a shorter learner

@@ -277,6 +277,7 @@ class MPETask(SACTask):
     """
 
     columns = ("FPR", "FNR", "FNR_required", "CVR", "SR")
+    game = "mpe_spread"
 
     def __init__(self, *, solver, layout: SpreadLayout, env_kwargs: Mapping[str, Any]
                  | None = None, split: Sequence[int], seed: int,

@@ -7,9 +7,7 @@ from typing import Any
 import numpy as np
 import torch
 
-
-def _is_int(x: Any) -> bool:
-    return isinstance(x, int | np.integer) and not isinstance(x, bool)
+from dicrl_torch.checks import is_int as _is_int  # noqa: F401 (the package's name for it)
 
 
 def _check_gamma(gamma: Any) -> float:
