@@ -265,3 +265,119 @@ def test_clone_gets_its_own_streams_and_the_state_round_trips(demos):
     with pytest.raises(ValueError, match="env: state"):
         make_solver(env_factory=functools.partial(spread_game, observation="agents")
                     ).load_state_dict(sd)
+
+
+# ------------------------------------------------ the Q-filtered demonstration loss
+def test_demo_loss_acts_only_where_the_critic_prefers_the_demonstrated_action(demos):
+    """``DecomposedSAC._demo_loss`` against its formula computed here from the actor and
+    critic: rows whose demonstrated action the critic rates lower contribute nothing,
+    the others ``||tanh μ(s) − a||²``, scaled by ``demo_bc · mean|Q(s, π(s))|``; its
+    gradient reaches the actor only."""
+    solver = make_solver(demo_bc=0.5)
+    assert type(solver.model).__name__ == "DecomposedSAC" and solver.model.demo_bc == 0.5
+    solver.set_demonstrations(demos)
+    solver.solve(ETA, COST, 60, n_eval_episodes=1)  # networks past their initialisation
+    model, batch = solver.model, 16
+    n_demo = model.replay_buffer.demo_rows(batch)
+    assert n_demo == 4  # round(0.25 * 16), the batch's last rows
+    data = model.replay_buffer.sample(batch)
+    actions_pi, _ = model.actor.action_log_prob(data.observations)
+    q_pi = torch.stack(model.critic(data.observations, actions_pi)).amin(0).detach()  # [B, 1]
+    obs, demo_actions = data.observations[-n_demo:], data.actions[-n_demo:]
+    with torch.no_grad():
+        q_demo = torch.stack(model.critic(obs, demo_actions)).amin(0)[:, 0]
+        mean_actions = torch.tanh(model.actor.get_action_dist_params(obs)[0])
+    better = q_demo > q_pi[-n_demo:, 0]
+    want = 0.5 * q_pi.abs().mean() * (better * ((mean_actions - demo_actions) ** 2).sum(-1)
+                                      ).mean()
+    model._demo_accept = []
+    loss = model._demo_loss(data, q_pi)
+    assert torch.allclose(loss, want, rtol=1e-5, atol=1e-7)
+    assert float(model._demo_accept[0]) == pytest.approx(float(better.float().mean()))
+    model.actor.zero_grad(), model.critic.zero_grad()
+    loss.backward()
+    assert all(p.grad is None or not p.grad.any() for p in model.critic.parameters())
+    if better.any():
+        assert any(p.grad is not None and p.grad.any() for p in model.actor.parameters())
+    # A critic that rates every demonstrated action lower: no pull at all.
+    q_high = q_pi + 1e6
+    model._demo_accept = []
+    assert float(model._demo_loss(data, q_high).detach()) == 0.0
+
+
+def test_demo_loss_settings_are_checked_and_saved(demos):
+    with pytest.raises(ValueError, match="demo_bc=0.5 acts on the demonstrated rows.*"
+                                         "demo_fraction > 0"):
+        make_solver(demo_bc=0.5, demo_fraction=0.0)
+    with pytest.raises(ValueError, match="demo_bc must be a finite number >= 0"):
+        make_solver(demo_bc=-1.0)
+    with_loss = make_solver(demo_bc=0.5)
+    with_loss.set_demonstrations(demos)
+    with_loss.solve(ETA, COST, 50, n_eval_episodes=1)
+    sd = round_trip(with_loss.state_dict())
+    with pytest.raises(ValueError, match="demo_bc: state 0.5, this solver 0.0"):
+        make_solver().load_state_dict(sd)
+    # A state saved before the setting existed had no demonstration loss.
+    plain = make_solver()
+    old = plain.state_dict()
+    del old["settings"]["demo_bc"]
+    plain.load_state_dict(round_trip(old))
+
+
+def test_demo_returns_are_each_episodes_discounted_learned_return(demos):
+    """``FeatureReplayBuffer.demo_returns`` against a direct sum over each recorded
+    episode of ``γ^k r(s_{t+k+1})``, with ``r = ω_r·φ_r + λ ω_c·φ_c`` from the bases."""
+    solver = make_solver(demo_value_bound=True)
+    solver.set_demonstrations(demos)
+    solver.set_weights(ETA, COST)
+    got = solver.replay_buffer.demo_returns()  # [n, 1]
+    want = []
+    for e in range(demos.n_episodes):
+        nxt = torch.tensor(demos.states[e, 1:demos.lengths[e] + 1], dtype=torch.float64)
+        r = (solver.reward_basis(nxt).double().numpy() @ ETA[:-1]
+             + ETA[-1] * solver.cost_basis(nxt).double().numpy() @ COST)
+        if solver.absorbing:  # the last state is absorbing: its reward for ever
+            r[-1] /= 1 - GAMMA
+        want += [sum(GAMMA ** k * r[t + k] for k in range(len(r) - t)) for t in range(len(r))]
+    np.testing.assert_allclose(got[:, 0], want, rtol=1e-5)
+    # New weights, new returns.
+    solver.set_weights(ETA * 2, COST)
+    np.testing.assert_allclose(solver.replay_buffer.demo_returns()[:, 0], 2 * np.array(want),
+                               rtol=1e-5)
+
+
+def test_the_value_bound_lifts_the_critic_only_below_the_demonstrated_returns(demos):
+    """Critic updates with the bound move Q(s, a_demo) up towards returns above it; with
+    returns far below Q the bound is inactive and the update is plain SAC's."""
+    solver = make_solver(demo_value_bound=True, demo_fraction=0.5)
+    solver.set_demonstrations(demos)
+    solver.solve(ETA, COST, 60, n_eval_episodes=1)
+    model = solver.model
+    buffer = model.replay_buffer
+    d = buffer._demo
+    obs = torch.as_tensor(buffer._normalize_obs(d["obs"], None))
+    acts = torch.as_tensor(d["actions"])
+
+    def q_demo(m):
+        with torch.no_grad():
+            return torch.stack(m.critic(obs, acts)).amin(0)[:, 0]
+
+    def train_pair(returns: float, steps: int) -> SACConstrainedSolver:
+        """The same updates (same random numbers) with the bound and without (a clone);
+        the clone is returned."""
+        twin = solver.clone(seed=7)
+        for s, bound in ((solver, True), (twin, False)):
+            s.model.demo_value_bound = bound
+            s.replay_buffer._demo_returns = np.full((len(acts), 1), returns)
+            torch.manual_seed(3), np.random.seed(3)  # noqa: NPY002 (SB3's stream)
+            s.model.train(gradient_steps=steps, batch_size=16)
+        return twin
+
+    # Returns far above Q: the bound lifts Q(s, a_demo) beyond what plain SAC gives.
+    twin = train_pair(1e3, 30)
+    assert float((q_demo(solver.model) - q_demo(twin.model)).mean()) > 0
+    # Returns far below every Q: the bound is inactive, the updates are plain SAC's.
+    twin = train_pair(-1e9, 5)
+    for a, b in zip(solver.model.critic.parameters(), twin.model.critic.parameters(),
+                    strict=True):
+        assert torch.equal(a, b)

@@ -117,6 +117,10 @@ class FeatureReplayBuffer(ReplayBuffer):
         the env, for inspection."""
         self.demo_fraction = 0.0
         self._demo: dict[str, np.ndarray] | None = None
+        self._demo_returns: np.ndarray | None = None  # under the current weights
+        self.last_demo_returns: torch.Tensor | None = None
+        """``[n_demo, n_rewards]``: :meth:`demo_returns` of the last :meth:`sample`'s
+        demonstrated rows (None without any)."""
 
     def set_weights(self, reward_weights: Any, multiplier: Any, cost_weights: Any) -> None:
         """Set ``ω_r [l_r]``, ``λ`` and ``ω_c [l_c]``; every later sample uses them."""
@@ -128,6 +132,7 @@ class FeatureReplayBuffer(ReplayBuffer):
         if not math.isfinite(lam):
             raise ValueError(f"multiplier (λ) must be a finite float, got {multiplier!r}.")
         self.multiplier = lam
+        self._demo_returns = None
         self.cost_weights = _weights(cost_weights, "cost_weights", self.l_c)
 
     def add(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray,
@@ -180,13 +185,15 @@ class FeatureReplayBuffer(ReplayBuffer):
                            ) -> None:
         """Mix demonstrated transitions into every batch (``None`` removes them).
 
-        Each episode of length ``L`` gives ``L`` transitions ``(o_t, a_t, o_{t+1})``, the
-        last one terminal (every agent done; absorbing when the buffer is), with the
-        features of ``s_{t+1}``: the same record as an env transition, so the same
-        relabelling applies. SAC is off-policy, so this leaves the soft-optimal policy
-        it converges to unchanged; it shows the critic routes round the obstacles that
-        its own exploration, starting from a policy that heads straight for the goal,
-        rarely finds.
+        Each episode of length ``L`` gives ``L`` transitions ``(o_t, a_t, o_{t+1})``, with
+        the features of ``s_{t+1}``: the same record as an env transition, so the same
+        relabelling applies. The last one is terminal (and absorbing) when the buffer is
+        absorbing (episodes end at the goal); otherwise an episode ends at the time
+        limit, which SAC bootstraps past, as it does an env's truncation (a terminal
+        end there would tell the critic that the goal state is worth one step). SAC is
+        off-policy, so this leaves the soft-optimal policy it converges to unchanged; it
+        shows the critic routes round the obstacles that its own exploration, starting
+        from a policy that heads straight for the goal, rarely finds.
 
         Args:
             demos: the learner's own episodes (never another learner's):
@@ -217,22 +224,54 @@ class FeatureReplayBuffer(ReplayBuffer):
             "next_obs": obs_from_states(next_states),
             "actions": np.asarray(actions if to_policy is None else to_policy(actions),
                                   dtype=np.float32),
-            "dones": terminal.astype(np.float32),
+            "dones": (terminal & self.absorbing).astype(np.float32),
+            "ends": terminal,
             "phi_r": _features(self.reward_basis, next_states),
             "phi_c": _features(self.cost_basis, next_states),
             "scale": np.where(terminal & self.absorbing, 1.0 / (1.0 - self.gamma), 1.0),
         }
+        self._demo_returns = None
         self.demo_fraction = fraction
 
+    def demo_returns(self) -> np.ndarray:
+        """``[n, n_rewards]`` float64: each demonstrated transition's discounted return to
+        the end of its episode under the current weights, ``G_t = r_t + γ G_{t+1}`` (the
+        last transition's ``r`` carries the absorbing scale when the buffer is absorbing).
+        The demonstrated actions followed by the rest of the demonstration earn it, so
+        it is a lower bound of the optimal value of ``(o_t, a_t)`` (the entropy bonus
+        aside) where the rewards after the episode's end are not negative."""
+        if self._demo is None:
+            raise RuntimeError("No demonstrations: call set_demonstrations first.")
+        if self._demo_returns is None:
+            d = self._demo
+            rewards = self._relabel(d["phi_r"], d["phi_c"], d["scale"])  # [n, G]
+            returns = np.empty_like(rewards)
+            running = np.zeros(rewards.shape[1])
+            # transitions lie in episode order, t ascending
+            for i in range(len(rewards) - 1, -1, -1):
+                if d["ends"][i]:
+                    running = np.zeros_like(running)
+                running = rewards[i] + self.gamma * running
+                returns[i] = running
+            self._demo_returns = returns
+        return self._demo_returns
+
+    def demo_rows(self, batch_size: int) -> int:
+        """How many of a :meth:`sample` of ``batch_size`` are demonstrated transitions
+        (its last rows)."""
+        return 0 if self._demo is None else int(round(batch_size * self.demo_fraction))
+
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
-        """A batch of ``batch_size`` transitions: ``round(demo_fraction · batch_size)``
-        demonstrated ones (if any) after those from the env."""
-        n_demo = 0 if self._demo is None else int(round(batch_size * self.demo_fraction))
+        """A batch of ``batch_size`` transitions: :meth:`demo_rows` demonstrated ones (if
+        any) after those from the env."""
+        n_demo = self.demo_rows(batch_size)
         online = super().sample(batch_size - n_demo, env=env)
+        self.last_demo_returns = None
         if n_demo == 0:
             return online
         d = self._demo
         idx = np.random.randint(0, len(d["dones"]), size=n_demo)  # noqa: NPY002 (as SB3)
+        self.last_demo_returns = self.to_torch(self.demo_returns()[idx].astype(np.float32))
         demo = self._samples(
             d["obs"][idx], d["actions"][idx], d["next_obs"][idx], d["dones"][idx],
             self._relabel(d["phi_r"][idx], d["phi_c"][idx], d["scale"][idx]), env)
@@ -268,7 +307,7 @@ class FeatureReplayBuffer(ReplayBuffer):
                "timeouts", "next_states", "reward_features", "cost_features", "reward_scale")
     """The per-transition arrays (``[buffer_size, n_envs, ...]``)."""
     _FRESH = {"reward_scale": 1.0}  # what a new buffer holds in the rows not filled yet (else 0)
-    _DEMO = ("obs", "next_obs", "actions", "dones", "phi_r", "phi_c", "scale")
+    _DEMO = ("obs", "next_obs", "actions", "dones", "ends", "phi_r", "phi_c", "scale")
 
     def state_dict(self) -> dict[str, Any]:
         """What sampling and storing read, as tensors and plain values: the filled rows
@@ -311,8 +350,10 @@ class FeatureReplayBuffer(ReplayBuffer):
             k = int(sd["demo"]["dones"].shape[0])
             mine = {"obs": (k, *self.obs_shape), "next_obs": (k, *self.obs_shape),
                     "actions": (k, self.action_dim), "dones": (k,), "phi_r": (k, self.l_r),
-                    "phi_c": (k, self.l_c), "scale": (k,)}
+                    "phi_c": (k, self.l_c), "scale": (k,), "ends": (k,)}
             for key, shape in mine.items():
+                if key == "ends" and key not in sd["demo"]:
+                    continue  # a state saved before it was kept: its dones are the ends
                 check_tensor(f"replay buffer demonstrations {key!r}", sd["demo"][key], shape,
                              sd["demo"][key].dtype)
 
@@ -330,7 +371,10 @@ class FeatureReplayBuffer(ReplayBuffer):
         self.cost_weights = optional_array(sd["cost_weights"])
         self.demo_fraction = float(sd["demo_fraction"])
         demo = sd["demo"]
+        if demo is not None and "ends" not in demo:  # saved before "ends" was kept
+            demo = {**demo, "ends": demo["dones"].bool()}
         self._demo = None if demo is None else {k: array_of(demo[k]) for k in self._DEMO}
+        self._demo_returns = None
         last = sd["last_sample_indices"]
         self.last_sample_indices = None if last is None else (array_of(last[0]),
                                                               array_of(last[1]))

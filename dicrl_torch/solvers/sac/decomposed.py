@@ -17,6 +17,29 @@ is taken per column (a lower bound of the minimum of the sums).
 
 With ``G = 1`` :meth:`DecomposedSAC.train` is SB3's ``SAC.train`` for a fixed temperature
 (``tests/test_sac_solver.py`` compares their updates).
+
+**Q-filtered demonstration loss** (``demo_bc > 0``; Nair et al. 2018, "Overcoming
+exploration in RL with demonstrations"). On the batch rows drawn from the learner's own
+demonstrations (the replay buffer's ``demo_fraction``) the actor also pays
+
+    demo_bc · mean|Q(s, π(s))| · 1[Q(s, a_demo) > Q(s, π(s))] · ||tanh μ(s) − a_demo||²,
+
+pulling its mean action towards a demonstrated one only where its own critic rates the
+demonstrated action higher than the policy's. Where the policy's action is rated at least
+as high the term is 0, so at the soft-optimal policy of the learned game it vanishes and
+the fixed point is SAC's; what it changes is how that fixed point is found: coordinated
+manoeuvres (one agent yielding to the other) that random exploration rarely strings
+together. The ``mean|Q|`` factor makes ``demo_bc`` free of the reward's scale (as
+TD3+BC's normalisation).
+
+**Demonstrated returns as a lower bound of the critic** (``demo_value_bound``). A
+demonstrated action followed by the rest of its demonstration earns the discounted
+return ``G_t`` of the learned reward (:meth:`FeatureReplayBuffer.demo_returns`), so the
+optimal ``Q(s_t, a_t) >= G_t``; the critics also pay ``0.5 relu(G_t − Q_k(s_t, a_t))²`` on
+the demonstrated rows (self-imitation's bound, Oh et al. 2018). One-step targets carry a
+coordinated manoeuvre's value back only as far as the policy already follows it; the
+bound gives its whole value at once, and it is inactive wherever the critic already
+rates the demonstration at least that high, so the fixed point is unchanged.
 """
 
 from __future__ import annotations
@@ -101,8 +124,31 @@ class DecomposedSAC(SAC):
         self._critic_params = list(self.critic.parameters())
         self._target_params = list(self.critic_target.parameters())
 
+    demo_bc: float = 0.0
+    """Weight of the Q-filtered demonstration loss (module docstring); 0: none."""
+    demo_value_bound: bool = False
+    """Bound the critics below by the demonstrated returns (module docstring)."""
+
+    def _demo_loss(self, data, q_pi: torch.Tensor) -> torch.Tensor:
+        """The module docstring's Q-filtered demonstration term on the batch's last rows
+        (the buffer's demonstrated ones; ``q_pi`` ``[B, G]`` at the policy's actions)."""
+        n_demo = self.replay_buffer.demo_rows(data.observations.shape[0])
+        obs, demo_actions = data.observations[-n_demo:], data.actions[-n_demo:]
+        with torch.no_grad():
+            q_demo = torch.stack(self.critic(obs, demo_actions)).amin(0).sum(-1)  # [n]
+            q_own = q_pi[-n_demo:].sum(-1)
+            better = (q_demo > q_own).to(q_own.dtype)
+            scale = q_pi.sum(-1).abs().mean()
+        mean_actions = self.actor(obs, deterministic=True)
+        gap = ((mean_actions - demo_actions) ** 2).sum(-1)
+        self._demo_accept.append(better.mean())
+        return self.demo_bc * scale * (better * gap).mean()
+
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         self.policy.set_training_mode(True)
+        self._demo_accept: list[torch.Tensor] = []
+        with_demo = self.demo_bc > 0 and self.replay_buffer.demo_rows(batch_size) > 0
+        with_bound = self.demo_value_bound and self.replay_buffer.demo_rows(batch_size) > 0
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
         alpha = self.ent_coef_tensor
         critic_losses, actor_losses = [], []
@@ -121,12 +167,19 @@ class DecomposedSAC(SAC):
                 target = data.rewards + (1 - data.dones) * self.gamma * next_q  # [B, G]
             q = self.critic(data.observations, data.actions)
             critic_loss = 0.5 * sum(((qk - target) ** 2).sum(-1).mean() for qk in q)
+            if with_bound:
+                returns = self.replay_buffer.last_demo_returns  # [n_demo, G]
+                n_demo = returns.shape[0]
+                critic_loss = critic_loss + 0.5 * sum(
+                    ((returns - qk[-n_demo:]).clamp(min=0) ** 2).sum(-1).mean() for qk in q)
             self.critic.optimizer.zero_grad()
             critic_loss.backward()
             self.critic.optimizer.step()
 
             q_pi = torch.stack(self.critic(data.observations, actions_pi)).amin(0)  # [B, G]
             actor_loss = (alpha * log_prob - q_pi.sum(-1, keepdim=True)).mean()
+            if with_demo:
+                actor_loss = actor_loss + self._demo_loss(data, q_pi.detach())
             self.actor.optimizer.zero_grad()
             actor_loss.backward()
             self.actor.optimizer.step()
@@ -140,3 +193,5 @@ class DecomposedSAC(SAC):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/actor_loss", float(torch.stack(actor_losses).mean()))
         self.logger.record("train/critic_loss", float(torch.stack(critic_losses).mean()))
+        if self._demo_accept:
+            self.logger.record("train/demo_accept", float(torch.stack(self._demo_accept).mean()))

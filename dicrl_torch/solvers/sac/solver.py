@@ -67,6 +67,10 @@ STATE_FORMAT = "dicrl_torch.SACConstrainedSolver/2"
 """Tag of :meth:`SACConstrainedSolver.state_dict`'s layout."""
 
 
+# Settings that states saved before they existed lack, with the value those states had.
+_LATER_SETTINGS = {"demo_bc": 0.0, "demo_value_bound": False}
+
+
 class SACConstrainedSolver:
     """Entropy-regularised SAC on ``r = ω_r·φ_r + λ ω_c·φ_c``, warm-started across calls.
 
@@ -110,6 +114,13 @@ class SACConstrainedSolver:
         feature_dtype: storage dtype of the buffer's features.
         demo_fraction: share of each SAC batch drawn from the demonstrations given to
             :meth:`set_demonstrations` (none are by default), in ``[0, 1)``.
+        demo_bc: weight of the Q-filtered demonstration loss on the actor
+            (:mod:`~dicrl_torch.solvers.sac.decomposed`): the policy's mean action is pulled
+            towards a demonstrated action where its critic rates that action higher, which
+            leaves SAC's fixed point unchanged; 0: none. Needs ``demo_fraction > 0``.
+        demo_value_bound: bound the critics below by the demonstrated transitions'
+            discounted returns under the learned reward (self-imitation's bound,
+            :mod:`~dicrl_torch.solvers.sac.decomposed`). Needs ``demo_fraction > 0``.
         scale_observations: feed actor and critics observations mapped onto ``[-1, 1]``
             by the observation space's bounds (:class:`BoxScaler`).
         per_agent_critics: critics with one soft-Q column per agent, each trained on that
@@ -146,11 +157,28 @@ class SACConstrainedSolver:
         action_margin: float = 1e-3,
         feature_dtype: Any = np.float32,
         demo_fraction: float = 0.0,
+        demo_bc: float = 0.0,
+        demo_value_bound: bool = False,
         scale_observations: bool = False,
         per_agent_critics: bool = False,
         sac_kwargs: dict[str, Any] | None = None,
     ) -> None:
         self.demo_fraction = _check_fraction(demo_fraction, "demo_fraction")
+        if isinstance(demo_bc, bool) or not isinstance(demo_bc, int | float | np.floating) \
+                or not math.isfinite(demo_bc) or demo_bc < 0:
+            raise ValueError(f"demo_bc must be a finite number >= 0, got {demo_bc!r}.")
+        if demo_bc > 0 and self.demo_fraction == 0:
+            raise ValueError(f"demo_bc={demo_bc} acts on the demonstrated rows of each batch, "
+                             f"but demo_fraction is 0; set demo_fraction > 0 (e.g. 0.25) or "
+                             f"demo_bc=0.")
+        self.demo_bc = float(demo_bc)
+        if not isinstance(demo_value_bound, bool):
+            raise ValueError(f"demo_value_bound must be a bool, got {demo_value_bound!r}.")
+        if demo_value_bound and self.demo_fraction == 0:
+            raise ValueError("demo_value_bound acts on the demonstrated rows of each batch, "
+                             "but demo_fraction is 0; set demo_fraction > 0 (e.g. 0.25) or "
+                             "demo_value_bound=false.")
+        self.demo_value_bound = demo_value_bound
         self.l_r = _basis_dim(reward_basis, "reward_basis")
         self.l_c = _basis_dim(cost_basis, "cost_basis")
         self.reward_basis, self.cost_basis = reward_basis, cost_basis
@@ -219,9 +247,10 @@ class SACConstrainedSolver:
             raise ValueError(f"per_agent_critics must be a bool, got {per_agent_critics!r}.")
         self.per_agent_critics = per_agent_critics
         algorithm = SAC
-        if per_agent_critics:
+        # SB3's SAC has no demonstration terms
+        if per_agent_critics or self.demo_bc > 0 or self.demo_value_bound:
             algorithm = DecomposedSAC
-            policy_kwargs["n_rewards"] = self.spec.n_agents
+            policy_kwargs["n_rewards"] = self.spec.n_agents if per_agent_critics else 1
         # Even building the vec env draws from the global numpy stream (SB3): all of it
         # happens on the solver's private streams.
         with self._private_rng():
@@ -243,6 +272,7 @@ class SACConstrainedSolver:
                 policy_kwargs=policy_kwargs, device=self.device, seed=None, verbose=0,
                 **kwargs,
             )
+        self.model.demo_bc, self.model.demo_value_bound = self.demo_bc, self.demo_value_bound
         # Without a logger of its own, every learn() call makes SB3 create an empty
         # SB3-<time> directory in the system temp dir: thousands per table2 run.
         self.model.set_logger(Logger(folder=None, output_formats=[]))
@@ -302,7 +332,9 @@ class SACConstrainedSolver:
             "ent_coef": self.ent_coef, "absorbing": self.absorbing,
             "per_agent_critics": self.per_agent_critics,
             "scale_observations": self.scale_observations, "device": self.device.type,
-            "demo_fraction": self.demo_fraction, "action_margin": self.action_margin,
+            "demo_fraction": self.demo_fraction, "demo_bc": self.demo_bc,
+            "demo_value_bound": self.demo_value_bound,
+            "action_margin": self.action_margin,
             "n_eval_episodes": self.n_eval_episodes,
             "env": self.spec.describe(),
             "learning_rate": float(lr) if isinstance(lr, int | float)
@@ -369,6 +401,8 @@ class SACConstrainedSolver:
 
     def _check_state(self, sd: dict[str, Any]) -> None:
         mine, theirs = self._settings(), sd["settings"]
+        # Settings added after states were first saved: an older state had the default.
+        theirs = {**_LATER_SETTINGS, **theirs}
         diff = [f"{k}: state {theirs.get(k)!r}, this solver {v!r}" for k, v in mine.items()
                 if theirs.get(k) != v]
         if diff:

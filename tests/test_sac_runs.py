@@ -1,7 +1,8 @@
-"""The drone arena through the one runner: a run killed with SIGKILL and resumed, and a
-run with one process per learner, give the uninterrupted all-in-one-process run's
-``results.json`` (the SAC solvers' networks, optimisers, replay buffers, environments and
-random streams are checkpointed exactly; docs/design.md §8)."""
+"""The SAC-solved games (the drone arena, the MPE spread) through the one runner: a run
+killed with SIGKILL and resumed, and a run with one process per learner, give the
+uninterrupted all-in-one-process run's ``results.json`` (the SAC solvers' networks,
+optimisers, replay buffers, environments and random streams are checkpointed exactly;
+docs/design.md §8)."""
 
 from __future__ import annotations
 
@@ -14,28 +15,39 @@ import pytest
 import torch
 import torch.distributed as dist
 from test_drone_dicrl import TINY
+from test_mpe_task import CONFIG_TINY
 from test_train_distributed import differences
 from tiny_train import comparable, finished_run
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ROOT / "experiments" / "train.py"
 # Two outer iterations: the crash after the first leaves one to resume.
-DRONES = [o for o in TINY if not o.startswith("algo.outer_iterations=")] + [
-    "algo.outer_iterations=2"]
+GAMES = {
+    "drones": [o for o in TINY if not o.startswith("algo.outer_iterations=")],
+    "mpe": ["experiment=mpe_quick", "solver.solver.demo_bc=0.5",  # its loss's state too
+            *(o for o in CONFIG_TINY if not o.startswith("algo.outer_iterations="))],
+}
 
 
-def run(run_dir: Path, *extra: str, env: dict | None = None) -> subprocess.CompletedProcess:
+def run(game: str, run_dir: Path, *extra: str, env: dict | None = None
+        ) -> subprocess.CompletedProcess:
     # One thread in every process: the SAC networks compute in float32, and a matrix
     # product summed by another number of threads differs in the last bits (measured:
     # the learners' last-solve scores by ~1e-8 with 2 threads against 1 per process).
-    return subprocess.run([sys.executable, str(TRAIN), f"hydra.run.dir={run_dir}", *DRONES,
-                           *extra], capture_output=True, text=True, cwd=ROOT, timeout=600,
+    return subprocess.run([sys.executable, str(TRAIN), f"hydra.run.dir={run_dir}",
+                           *GAMES[game], "algo.outer_iterations=2", *extra],
+                          capture_output=True, text=True, cwd=ROOT, timeout=600,
                           env={**os.environ, "DICRL_THREADS": "1", **(env or {})})
 
 
+@pytest.fixture(scope="module", params=sorted(GAMES))
+def game(request) -> str:
+    return request.param
+
+
 @pytest.fixture(scope="module")
-def uninterrupted(tmp_path_factory) -> Path:
-    return finished_run(tmp_path_factory, "drones", run=run)
+def uninterrupted(tmp_path_factory, game) -> Path:
+    return finished_run(tmp_path_factory, game, run=lambda d, *e: run(game, d, *e))
 
 
 def assert_same(run_dir: Path, reference: Path) -> None:
@@ -46,13 +58,13 @@ def assert_same(run_dir: Path, reference: Path) -> None:
     assert not diffs, f"{len(diffs)} differences:\n" + "\n".join(diffs[:30])
 
 
-def test_a_killed_drone_run_resumes_to_the_uninterrupted_results(tmp_path, uninterrupted):
-    crashed = run(tmp_path, env={"DICRL_CRASH_AFTER": "D-ICRL:1"})  # SIGKILL after it. 1
+def test_a_killed_run_resumes_to_the_uninterrupted_results(tmp_path, game, uninterrupted):
+    crashed = run(game, tmp_path, env={"DICRL_CRASH_AFTER": "D-ICRL:1"})  # SIGKILL after it. 1
     assert crashed.returncode == -9, crashed.stderr[-3000:]
     saved = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     assert saved["D-ICRL"]["outer_iteration"] == 1
     assert len(saved["D-ICRL"]["learner_model"]["solvers"]) == 2  # both SAC solvers
-    resumed = run(tmp_path, "resume=true")
+    resumed = run(game, tmp_path, "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "resuming from" in resumed.stdout
     assert_same(tmp_path, uninterrupted)
@@ -60,8 +72,8 @@ def test_a_killed_drone_run_resumes_to_the_uninterrupted_results(tmp_path, unint
 
 @pytest.mark.skipif(not (dist.is_available() and dist.is_gloo_available()),
                     reason="torch.distributed with gloo is not available")
-def test_one_process_per_drone_learner_gives_the_simulated_results(tmp_path, uninterrupted):
-    out = run(tmp_path, "comm=distributed")
+def test_one_process_per_learner_gives_the_simulated_results(tmp_path, game, uninterrupted):
+    out = run(game, tmp_path, "comm=distributed")
     assert out.returncode == 0, out.stderr[-3000:]
     assert "starting 2 learner processes" in out.stdout
     assert_same(tmp_path, uninterrupted)
