@@ -147,6 +147,32 @@ def test_per_agent_critics_split_team_features_equally():
     assert [c["success_under_constraints"] for c in solver.last_checks] == [0.0, 0.0]
 
 
+@pytest.mark.parametrize("per_agent", [False, True])
+def test_split_cost_critics_sample_reward_and_cost_columns(per_agent):
+    """With ``split_cost_critic`` the batch holds the reward part ``ω_r·φ_r`` and the cost
+    part ``λ ω_c·φ_c`` as separate columns (each per agent with per-agent critics),
+    computed here from the stored features; together they are the joint reward."""
+    solver = make_solver(split_cost_critic=True, per_agent_critics=per_agent,
+                         learning_starts=1000)
+    solver.solve(ETA, COST, 60, n_eval_episodes=1)
+    assert type(solver.model).__name__ == "DecomposedSAC"
+    buf = solver.replay_buffer
+    batch = buf.sample(16)
+    g = N if per_agent else 1
+    assert batch.rewards.shape == (16, 2 * g)
+    b, e = buf.last_sample_indices
+    phi_r = buf.reward_features[b, e].astype(np.float64)
+    phi_c = buf.cost_features[b, e].astype(np.float64)
+    scale = buf.reward_scale[b, e]
+    rewards = batch.rewards.numpy()
+    np.testing.assert_allclose(rewards[:, :g].sum(1), scale * (phi_r @ ETA[:-1]),
+                               rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(rewards[:, g:].sum(1), scale * ETA[-1] * (phi_c @ COST),
+                               rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(rewards.sum(1), buf.compute_rewards(b, e), rtol=1e-5,
+                               atol=1e-5)
+
+
 # ------------------------------------------------------------------ demonstrations
 def test_log_likelihood_and_feature_sums_of_recorded_demonstrations(demos):
     solver = make_solver(seed=1)

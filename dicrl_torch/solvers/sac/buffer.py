@@ -62,6 +62,9 @@ class FeatureReplayBuffer(ReplayBuffer):
         state_shape: ``(N, d_s)`` of the joint states in the env's infos.
         per_agent: sample one reward column per agent (the bases must give
             ``agent_shares()``).
+        split_cost: sample the reward part ``ω_r·φ_r`` and the cost part
+            ``λ ω_c·φ_c`` as separate columns (after the agents' ones when
+            ``per_agent``: ``[B, 2 G]``); their sum is the reward either way.
     """
 
     def __init__(
@@ -81,6 +84,7 @@ class FeatureReplayBuffer(ReplayBuffer):
         feature_dtype: Any = np.float32,
         state_shape: tuple[int, int],
         per_agent: bool = False,
+        split_cost: bool = False,
     ) -> None:
         if optimize_memory_usage:
             raise ValueError(
@@ -103,7 +107,10 @@ class FeatureReplayBuffer(ReplayBuffer):
         if per_agent:
             self.shares = (_agent_shares(reward_basis, "reward_basis", n_agents),
                            _agent_shares(cost_basis, "cost_basis", n_agents))
-        self.n_rewards = n_agents if per_agent else 1
+        if not isinstance(split_cost, bool):
+            raise ValueError(f"split_cost must be a bool, got {split_cost!r}.")
+        self.split_cost = split_cost
+        self.n_rewards = (n_agents if per_agent else 1) * (2 if split_cost else 1)
         shape = (self.buffer_size, self.n_envs)
         self.next_states = np.zeros((*shape, *self.state_shape), dtype=np.float64)
         self.reward_features = np.zeros((*shape, self.l_r), dtype=feature_dtype)
@@ -164,20 +171,24 @@ class FeatureReplayBuffer(ReplayBuffer):
 
     def _relabel(self, phi_r: np.ndarray, phi_c: np.ndarray, scale: np.ndarray) -> np.ndarray:
         """``[B, n_rewards]`` float64 ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` under the
-        current weights, split into per-agent shares when ``per_agent``."""
+        current weights, split into per-agent shares when ``per_agent`` and into the
+        reward and the cost part when ``split_cost``."""
         if self.reward_weights is None:
             raise RuntimeError(
                 "FeatureReplayBuffer has no weights yet; call set_weights(reward_weights, "
                 "multiplier, cost_weights) before sampling."
             )
         phi_r, phi_c = phi_r.astype(np.float64), phi_c.astype(np.float64)
-        if self.shares is None:  # the joint reward exactly as before (no [l, 1] matmul)
-            r = phi_r @ self.reward_weights + self.multiplier * (phi_c @ self.cost_weights)
-            return (scale * r)[:, None]
-        share_r, share_c = self.shares
-        r = (phi_r @ (self.reward_weights[:, None] * share_r)
-             + self.multiplier * (phi_c @ (self.cost_weights[:, None] * share_c)))
-        return scale[:, None] * r
+        if self.shares is None:
+            reward = (phi_r @ self.reward_weights)[:, None]
+            cost = self.multiplier * (phi_c @ self.cost_weights)[:, None]
+        else:
+            share_r, share_c = self.shares
+            reward = phi_r @ (self.reward_weights[:, None] * share_r)
+            cost = self.multiplier * (phi_c @ (self.cost_weights[:, None] * share_c))
+        if self.split_cost:
+            return scale[:, None] * np.concatenate([reward, cost], axis=1)
+        return scale[:, None] * (reward + cost)
 
     def set_demonstrations(self, demos: Any, fraction: float,
                            obs_from_states: Callable[[np.ndarray], np.ndarray] | None = None,

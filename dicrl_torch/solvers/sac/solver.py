@@ -68,7 +68,7 @@ STATE_FORMAT = "dicrl_torch.SACConstrainedSolver/2"
 
 
 # Settings that states saved before they existed lack, with the value those states had.
-_LATER_SETTINGS = {"demo_bc": 0.0, "demo_value_bound": False}
+_LATER_SETTINGS = {"demo_bc": 0.0, "demo_value_bound": False, "split_cost_critic": False}
 
 
 class SACConstrainedSolver:
@@ -126,6 +126,11 @@ class SACConstrainedSolver:
         per_agent_critics: critics with one soft-Q column per agent, each trained on that
             agent's share of the reward (the bases' ``agent_shares()``;
             :mod:`~dicrl_torch.solvers.sac.decomposed`; the fixed point is plain SAC's).
+        split_cost_critic: critics with separate soft-Q columns for the reward part
+            ``ω_r·φ_r`` and the cost part ``λ ω_c·φ_c`` (per agent too with
+            ``per_agent_critics``); their sum is the joint soft Q, so the fixed point is
+            plain SAC's. A large penalty then no longer shares one regression with the
+            reward.
         sac_kwargs: further keyword arguments for ``stable_baselines3.SAC``.
     """
 
@@ -161,6 +166,7 @@ class SACConstrainedSolver:
         demo_value_bound: bool = False,
         scale_observations: bool = False,
         per_agent_critics: bool = False,
+        split_cost_critic: bool = False,
         sac_kwargs: dict[str, Any] | None = None,
     ) -> None:
         self.demo_fraction = _check_fraction(demo_fraction, "demo_fraction")
@@ -247,10 +253,14 @@ class SACConstrainedSolver:
             raise ValueError(f"per_agent_critics must be a bool, got {per_agent_critics!r}.")
         self.per_agent_critics = per_agent_critics
         algorithm = SAC
-        # SB3's SAC has no demonstration terms
-        if per_agent_critics or self.demo_bc > 0 or self.demo_value_bound:
+        if not isinstance(split_cost_critic, bool):
+            raise ValueError(f"split_cost_critic must be a bool, got {split_cost_critic!r}.")
+        self.split_cost_critic = split_cost_critic
+        # SB3's SAC has no reward columns and no demonstration terms
+        if per_agent_critics or split_cost_critic or self.demo_bc > 0 or self.demo_value_bound:
             algorithm = DecomposedSAC
-            policy_kwargs["n_rewards"] = self.spec.n_agents if per_agent_critics else 1
+            policy_kwargs["n_rewards"] = ((self.spec.n_agents if per_agent_critics else 1)
+                                          * (2 if split_cost_critic else 1))
         # Even building the vec env draws from the global numpy stream (SB3): all of it
         # happens on the solver's private streams.
         with self._private_rng():
@@ -268,7 +278,8 @@ class SACConstrainedSolver:
                                       "gamma": self.gamma, "absorbing": self.absorbing,
                                       "feature_dtype": feature_dtype,
                                       "state_shape": self.spec.state_shape,
-                                      "per_agent": per_agent_critics},
+                                      "per_agent": per_agent_critics,
+                                      "split_cost": split_cost_critic},
                 policy_kwargs=policy_kwargs, device=self.device, seed=None, verbose=0,
                 **kwargs,
             )
@@ -331,6 +342,7 @@ class SACConstrainedSolver:
             "buffer_size": int(self.replay_buffer.buffer_size), "gamma": self.gamma,
             "ent_coef": self.ent_coef, "absorbing": self.absorbing,
             "per_agent_critics": self.per_agent_critics,
+            "split_cost_critic": self.split_cost_critic,
             "scale_observations": self.scale_observations, "device": self.device.type,
             "demo_fraction": self.demo_fraction, "demo_bc": self.demo_bc,
             "demo_value_bound": self.demo_value_bound,
