@@ -407,3 +407,27 @@ def test_the_value_bound_lifts_the_critic_only_below_the_demonstrated_returns(de
     for a, b in zip(solver.model.critic.parameters(), twin.model.critic.parameters(),
                     strict=True):
         assert torch.equal(a, b)
+
+
+def test_a_demonstrated_time_limit_end_is_a_truncation_and_old_states_load(demos):
+    """The spread has no absorbing goal: its demonstrations end at the time limit, which
+    SAC bootstraps past (done 0), while the episode boundaries are kept for the returns.
+    A buffer state saved before the boundaries were stored ("ends") still loads."""
+    solver = make_solver(absorbing=False)
+    solver.set_demonstrations(demos)
+    d = solver.replay_buffer._demo
+    assert not d["dones"].any() and int(d["ends"].sum()) == demos.n_episodes
+    absorbing = make_solver(absorbing=True)
+    absorbing.set_demonstrations(demos)
+    np.testing.assert_array_equal(absorbing.replay_buffer._demo["dones"],
+                                  absorbing.replay_buffer._demo["ends"].astype(np.float32))
+    solver.set_weights(ETA, COST)
+    returns = solver.replay_buffer.demo_returns()
+    sd = solver.state_dict()
+    del sd["replay_buffer"]["demo"]["ends"]
+    again = make_solver(absorbing=False)
+    again.load_state_dict(round_trip(sd))
+    again.set_weights(ETA, COST)
+    # the old state's dones (all 0 here) stand in for the ends: one long "episode"
+    assert again.replay_buffer._demo["ends"].dtype == bool
+    assert again.replay_buffer.demo_returns().shape == returns.shape

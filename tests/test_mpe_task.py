@@ -226,6 +226,7 @@ def test_the_shipped_mpe_quick_config_composes_unchanged():
     check_config(cfg)
     assert cfg.name == "mpe_quick" and list(cfg.split) == [10, 10]
     assert cfg.solver.solver.absorbing is False
+    assert cfg.solver.solver.split_cost_critic and cfg.solver.solver.per_agent_critics
 
 
 # ------------------------------------------------------------------ bad input
