@@ -14,7 +14,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "dicrl_torch"
 # Lowest first; within a floor imports are free. demos (trajectory data) sits below
 # solvers: a solver reads demonstrations, the experts' policies live with the solvers.
 FLOORS: list[set[str]] = [
-    {"io", "logger"},                    # utilities
+    {"io", "logger", "checks"},          # utilities
     {"envs", "features", "demos"},       # environments, feature bases, trajectory data
     {"solvers"},                         # inner solvers and the experts' policies
     {"metrics", "figures", "comm"},      # evaluation, pictures, communication
