@@ -125,9 +125,9 @@ class FeatureReplayBuffer(ReplayBuffer):
         self.demo_fraction = 0.0
         self._demo: dict[str, np.ndarray] | None = None
         self._demo_returns: np.ndarray | None = None  # under the current weights
-        self.last_demo_returns: torch.Tensor | None = None
-        """``[n_demo, n_rewards]``: :meth:`demo_returns` of the last :meth:`sample`'s
-        demonstrated rows (None without any)."""
+        self.last_demo_indices: np.ndarray | None = None
+        """``[n_demo]``: the demonstrated transitions of the last :meth:`sample`'s last
+        rows (None without any); their returns are computed only when asked for."""
 
     def set_weights(self, reward_weights: Any, multiplier: Any, cost_weights: Any) -> None:
         """Set ``ω_r [l_r]``, ``λ`` and ``ω_c [l_c]``; every later sample uses them."""
@@ -277,12 +277,12 @@ class FeatureReplayBuffer(ReplayBuffer):
         any) after those from the env."""
         n_demo = self.demo_rows(batch_size)
         online = super().sample(batch_size - n_demo, env=env)
-        self.last_demo_returns = None
+        self.last_demo_indices = None
         if n_demo == 0:
             return online
         d = self._demo
         idx = np.random.randint(0, len(d["dones"]), size=n_demo)  # noqa: NPY002 (as SB3)
-        self.last_demo_returns = self.to_torch(self.demo_returns()[idx].astype(np.float32))
+        self.last_demo_indices = idx
         demo = self._samples(
             d["obs"][idx], d["actions"][idx], d["next_obs"][idx], d["dones"][idx],
             self._relabel(d["phi_r"][idx], d["phi_c"][idx], d["scale"][idx]), env)
