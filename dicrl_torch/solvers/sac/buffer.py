@@ -244,6 +244,14 @@ class FeatureReplayBuffer(ReplayBuffer):
         self._demo_returns = None
         self.demo_fraction = fraction
 
+    def sampled_demo_returns(self) -> torch.Tensor:
+        """``[n_demo, n_rewards]`` float32 on the buffer's device: :meth:`demo_returns` of
+        the demonstrated rows of the last :meth:`sample` (its last ``n_demo`` rows)."""
+        if self.last_demo_indices is None:
+            raise RuntimeError("The last sample held no demonstrated rows: set "
+                               "demo_fraction > 0 and call sample first.")
+        return self.to_torch(self.demo_returns()[self.last_demo_indices].astype(np.float32))
+
     def demo_returns(self) -> np.ndarray:
         """``[n, n_rewards]`` float64: each demonstrated transition's discounted return to
         the end of its episode under the current weights, ``G_t = r_t + γ G_{t+1}`` (the

@@ -46,7 +46,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
 import torch
 from gymnasium import spaces
 from stable_baselines3 import SAC
@@ -169,9 +168,7 @@ class DecomposedSAC(SAC):
             q = self.critic(data.observations, data.actions)
             critic_loss = 0.5 * sum(((qk - target) ** 2).sum(-1).mean() for qk in q)
             if with_bound:
-                buffer = self.replay_buffer  # [n_demo, G] returns of the demonstrated rows
-                returns = buffer.to_torch(
-                    buffer.demo_returns()[buffer.last_demo_indices].astype(np.float32))
+                returns = self.replay_buffer.sampled_demo_returns()  # [n_demo, G]
                 n_demo = returns.shape[0]
                 critic_loss = critic_loss + 0.5 * sum(
                     ((returns - qk[-n_demo:]).clamp(min=0) ** 2).sum(-1).mean() for qk in q)
