@@ -317,7 +317,8 @@ def test_settings_the_spread_cannot_honour_are_refused(task):
 
 # ------------------------------------------------------------------ the reward basis
 def test_landmark_reward_basis_shapes_values_and_shares():
-    basis = LandmarkRewardBasis(n_agents=2, features=["closeness", "coverage"], sigma=0.5)
+    basis = LandmarkRewardBasis(n_agents=2, landmarks=((0.5, 0.0), (1.0, 0.0)),
+                                features=["closeness", "coverage"], sigma=0.5)
     assert basis.names == ["landmark0", "landmark1", "agent0/landmark0", "agent0/landmark1",
                            "agent1/landmark0", "agent1/landmark1"]
     states = torch.zeros(3, 5, 2, 4, dtype=torch.float64)  # [..., N, d_s]

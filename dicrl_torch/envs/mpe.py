@@ -7,16 +7,21 @@ Geometry (mpe2's units, ``x`` to the right, ``y`` up; defaults for 2 agents)::
      1.5 ┌──────────────────────────────────────────────────────┐  walls at ±1.5
          │                                                      │
      0.5 │  ┌─────┐                                             │
-         │  │start│            ╭─────╮                          │
-       0 │  │region            │  d  │       x L0        x L1   │  d: centre (0, 0), r 0.3
-         │  │     │            ╰─────╯                          │  L0 = (0.5, 0)
-    -0.5 │  └─────┘                                             │  L1 = (1.0, 0)
+         │  │start│            ╭─────╮    x L0          x L1  │
+       0 │  │region            │  d  │                          │  d: centre (0, 0), r 0.3
+         │  │     │            ╰─────╯                          │  L0 = (0.5625, 0.1875)
+    -0.5 │  └─────┘                                             │  L1 = (1.3125, 0.1875)
     -1.5 └──────────────────────────────────────────────────────┘
           -1.2  -0.8              0         0.5        1.0    1.5
 
 The agents start anywhere in the start region (uniformly, at least
-``min_distance + START_MARGIN`` apart) and must cover the landmarks, which lie in a row
-behind the forbidden disc (3 agents: ``(0.45, 0), (0.9, 0), (1.35, 0)``). Every
+``min_distance + START_MARGIN`` apart) and must cover the landmarks, which lie in a
+row behind the forbidden disc (3 agents, staggered: ``(0.5625, 0.1875), (0.9375, -0.1875),
+(1.3125, 0.1875)``). Each default landmark is the centre of a cell of the 8 × 8 cost grid
+(``features/cost=position_cells``). With landmarks on cell boundaries (the row
+``(0.5, 0), (1.0, 0)`` of earlier versions), experts rest on one side of a boundary and
+any policy resting a hair across it accrues a cell they never visit, which the learners
+then forbid (docs/mpe.md). Every
 straight route from a start to a landmark crosses the disc, and the straight routes
 converge on the row, so an unconstrained team violates both kinds of true constraints
 (:class:`NominalController`: in nearly every episode of the nominal game, see the
@@ -98,8 +103,8 @@ MAX_SPEED: float = 2.0 * math.sqrt(2.0)
 pushes by contact forces and noise, so that observations are bounded."""
 
 _DEFAULT_LANDMARKS: dict[int, tuple[tuple[float, float], ...]] = {
-    2: ((0.5, 0.0), (1.0, 0.0)),
-    3: ((0.45, 0.0), (0.9, 0.0), (1.35, 0.0)),
+    2: ((0.5625, 0.1875), (1.3125, 0.1875)),
+    3: ((0.5625, 0.1875), (0.9375, -0.1875), (1.3125, 0.1875)),
 }
 _DEFAULT_START_REGIONS: dict[int, tuple[float, float, float, float]] = {
     2: (-1.2, -0.5, -0.8, 0.5),
@@ -135,8 +140,10 @@ class SpreadLayout:
         n_agents: number of agents, which is also the number of landmarks (2 or more;
             defaults exist for 2 and 3).
         landmarks: ``[N, 2]`` fixed landmark positions; default for 2 agents
-            ``(0.5, 0), (1.0, 0)``, for 3 ``(0.45, 0), (0.9, 0), (1.35, 0)``: a row
-            behind the disc on its axis. They must lie
+            ``(0.5625, 0.1875), (1.3125, 0.1875)``, a row behind the disc, for 3
+            ``(0.5625, 0.1875), (0.9375, -0.1875), (1.3125, 0.1875)``, staggered (a row
+            of cell centres would be closer than ``min_distance``): each at a cell centre
+            of the 8 × 8 cost grid. They must lie
             inside the arena, at least ``disc_radius + SUCCESS_RADIUS`` from the disc's
             centre and ``min_distance`` apart, so that the task can be solved.
         start_region: ``(x_lo, y_lo, x_hi, y_hi)``, the box the starts are drawn from
@@ -655,8 +662,9 @@ class Controller(Protocol):
 def sorted_assignment(layout: SpreadLayout, positions: np.ndarray) -> np.ndarray:
     """``[N]`` int: the landmark of each agent, matching agents and landmarks in their
     order across the travel direction, right to left (ties: the nearer along the travel
-    direction first). Landmarks in a row along the travel direction (the defaults) go
-    from the nearest to the right-most agent to the farthest to the left-most."""
+    direction first). Landmarks in a row along the travel direction (the 2-agent
+    defaults) go from the nearest to the right-most agent to the farthest to the
+    left-most."""
     e = layout.travel_direction
     normal = np.array([-e[1], e[0]])
     lm = layout.landmark_array
