@@ -336,6 +336,13 @@ def landmarks_covered(positions: Any, landmarks: Any,
 
 
 # -------------------------------------------------------------------------- the env
+def _segment_distance(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Least distance from ``point`` to the segment from ``a`` to ``b`` (all ``[2]``)."""
+    ab = b - a
+    t = float(np.clip((point - a) @ ab / max(ab @ ab, 1e-12), 0.0, 1.0))
+    return float(np.linalg.norm(point - (a + t * ab)))
+
+
 def _collision_force(world: Any, entity_a: Any, entity_b: Any) -> list[Any]:
     """mpe2's contact force (``World.get_collision_force``), which divides by the
     distance: two agents pushed into the same corner of the walls sit at the same point,
@@ -367,12 +374,20 @@ class ConstrainedSpread(CheckedParallelEnv):
         layout: the geometry (default :class:`SpreadLayout()`: 2 agents).
         constrained: True for the true game (violators freeze), False for the nominal.
         max_steps: episode length in steps of 0.1 (default 50). The via-point
-            controller covers the landmarks for good within 25 steps with 2 agents and
-            32 with 3 (measured on 1,000 seeded episodes each).
+            controller covers the landmarks for good within 23 steps with 2 agents and
+            26 with 3 (measured on 100 seeded episodes each).
         local_ratio: mpe2's mix of the local and global reward (0.5).
         noise_std: standard deviation of Gaussian noise added to each flying agent's
             velocity per step, from the env's seeded generator (default 0: mpe2's
             deterministic physics).
+        order_agents: number the drawn starts so that agent ``k``'s landmark in the
+            order-preserving matching (:func:`sorted_assignment`) is landmark ``k``. The
+            agents are interchangeable, so this is a labelling, not a change of the
+            game; it spares a joint policy learning each assignment once per start
+            order (without it the learners' agents kept their labels' landmarks and
+            crossed over, through free cells that the experts never visit, which the
+            learners then forbade: docs/mpe.md). Starts given in ``options`` keep the
+            caller's order.
         render_mode: None or ``"rgb_array"``.
     """
 
@@ -387,6 +402,7 @@ class ConstrainedSpread(CheckedParallelEnv):
         max_steps: int = 50,
         local_ratio: float = 0.5,
         noise_std: float = 0.0,
+        order_agents: bool = True,
         render_mode: str | None = None,
     ) -> None:
         if layout is None:
@@ -409,6 +425,9 @@ class ConstrainedSpread(CheckedParallelEnv):
         self.max_steps = int(max_steps)
         self.local_ratio = local_ratio
         self.noise_std = _number("noise_std", noise_std)
+        if not isinstance(order_agents, bool | np.bool_):
+            raise ValueError(f"order_agents must be a bool, got {order_agents!r}.")
+        self.order_agents = bool(order_agents)
         self.render_mode = render_mode
         n = self.n_agents = layout.n_agents
         self.possible_agents = _agent_names(n)
@@ -460,6 +479,8 @@ class ConstrainedSpread(CheckedParallelEnv):
         arena off the constraints) instead of drawing them (other keys are ignored)."""
         pos = sample_starts(self.layout, self._rng)
         assert pos is not None  # the layout checked that the region holds the agents
+        if self.order_agents:  # agent k takes the k-th start of the matching's order
+            pos = pos[np.argsort(sorted_assignment(self.layout, pos))]
         if options and options.get("positions") is not None:
             pos = self.layout.check_starts(options["positions"])
         w = self._world
@@ -767,8 +788,9 @@ class ViaPointController:
     clearance`` from the centre, the next one a lane ``min_distance + lane_margin``
     further out, and so on. Each route runs from the start through two via-points
     abreast the disc (``disc_radius`` before and after its centre along the travel
-    direction), along the lane until abreast of the landmark (if it lies further on),
-    then to the landmark.
+    direction), then straight to the landmark; if one agent's straight way would pass
+    closer than ``clearance`` to the disc or than ``min_distance`` to another landmark,
+    every agent follows its lane until abreast of its landmark first.
 
     Timing: the agents do not interact physically while they keep apart, so the planner
     simulates each agent's flight alone (mpe2's physics, the same tracking law) and
@@ -824,18 +846,36 @@ class ViaPointController:
             else:
                 self.side[i], self.lane[i] = 1, rank - n_right
         r = layout.disc_radius
-        routes = []
+        legs = []  # (the lane's side point, the two via-points abreast the disc, target)
         for i in range(n):
             offset = r + self.clearance + self.lane[i] * (layout.min_distance
                                                           + self.lane_margin)
             side = centre + self.side[i] * offset * normal
-            via = [side - r * e, side + r * e] if r > 0 else []
-            target = lm[self.assignment[i]]
-            along = (target - centre) @ e
-            if r > 0 and along > r:  # follow the lane until abreast of the landmark
-                via.append(side + along * e)
+            legs.append((side, [side - r * e, side + r * e] if r > 0 else [],
+                         lm[self.assignment[i]]))
+        # Straight on from the lanes' exits: a constrained-optimal expert takes the
+        # shortest way, and a detour (along the lane until abreast of the landmark) leaves
+        # free cells unvisited that the learners then read as forbidden (docs/mpe.md).
+        # Every agent detours if one straight way would pass closer than the clearance to
+        # the disc or than min_distance to another landmark (where a settled agent may
+        # sit): a straight descent across a lane that another agent follows is what the
+        # start delays could not keep apart (3 agents).
+        detour = r > 0 and any(self._needs_detour(via[-1], target, self.assignment[i])
+                               for i, (_, via, target) in enumerate(legs))
+        routes = []
+        for side, via, target in legs:
+            if detour:
+                via = [*via, side + max((target - centre) @ e, r) * e]
             routes.append(np.array([*via, target]))
         return routes
+
+    def _needs_detour(self, exit_: np.ndarray, target: np.ndarray, k: int) -> bool:
+        layout = self.env.layout
+        centre = np.asarray(layout.disc_centre)
+        if _segment_distance(centre, exit_, target) < layout.disc_radius + self.clearance:
+            return True
+        others = np.delete(layout.landmark_array, k, axis=0)
+        return any(_segment_distance(p, exit_, target) < layout.min_distance for p in others)
 
     def _fly_alone(self, start: np.ndarray, route: np.ndarray, steps: int) -> np.ndarray:
         """``[steps + 1, 2]`` positions of one agent flying ``route`` from rest at

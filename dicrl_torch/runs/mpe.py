@@ -371,8 +371,8 @@ class MPETask(SACTask):
             raise RuntimeError(
                 f"Only {len(good)} of {n + spare} via-point episodes succeeded without "
                 f"violation in this layout (max_steps={env.max_steps}, noise_std="
-                f"{env.noise_std}); give the experts time (they settle within about 25 "
-                f"steps with 2 agents, 32 with 3), lower the noise, widen their clearance "
+                f"{env.noise_std}); give the experts time (they settle within about 23 "
+                f"steps with 2 agents, 26 with 3), lower the noise, widen their clearance "
                 f"(expert_kwargs) or ask for fewer demonstrations.")
         return candidates.subset(good[:n])
 
