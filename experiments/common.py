@@ -137,8 +137,11 @@ def mpe_task(cfg):
     """The constrained MPE spread's task (``env=mpe_spread``; issue 27)."""
     from dicrl_torch.runs.mpe import build_mpe_task
 
+    expert = OmegaConf.to_container(cfg.env.get("expert") or {})  # ViaPointController's
+    expert = {k: v for k, v in expert.items() if not k.startswith("_")}  # keyword arguments
     return build_mpe_task(
         layout=instantiate(cfg.env.layout), env=OmegaConf.to_container(cfg.env.arena),
+        expert=expert,
         reward_basis=instantiate(cfg.features.reward),
         cost_basis=instantiate(cfg.features.cost),
         solver=instantiate(cfg.solver.solver, _partial_=True), **sac_task_settings(cfg))

@@ -133,7 +133,7 @@ KNOWN_KEYS = {
     "": {"env", "features", "solver", "algo", "graph", "comm", "logger", "name", "seed",
          "n_demonstrations", "split", "eval_episodes", "eval_every", "expert_temperature",
          "checkpoint_every", "resume", "baselines", "shard_files"},
-    "env": {"layout", "model", "true_reward_weights", "arena"},
+    "env": {"layout", "model", "true_reward_weights", "arena", "expert"},
     # the drones' solver node (the grid's has a _target_, checked against its signature)
     "solver": {"timesteps", "warmup_timesteps", "final_timesteps", "final_checks",
                "final_restarts", "final_score", "n_eval_episodes", "eval_action", "solver"},

@@ -352,6 +352,30 @@ def test_two_agents_fly_straight_from_the_lanes_and_three_follow_them():
             np.testing.assert_array_equal(route[-1], layout.landmark_array[k])
 
 
+def test_lane_spread_varies_the_lanes_per_start_and_keeps_the_experts_safe():
+    env = ConstrainedSpread()
+    plain, spread = ViaPointController(env), ViaPointController(env, lane_spread=0.3)
+    offsets = []
+    for seed in range(60):
+        a, b = run_episode(env, plain, seed=seed), run_episode(env, spread, seed=seed)
+        assert a.success and b.success  # measured: 100 of 100 seeds at 0.3
+        assert np.all(plain.spread == 0) and np.all((spread.spread >= 0)
+                                                    & (spread.spread <= 0.3))
+        # the lanes lie further out by the draw: a via-point abreast the disc is
+        # disc_radius along the travel direction from the lane's foot
+        def lane(route):
+            return np.sqrt(np.sum(route[:2] ** 2, axis=1) - env.layout.disc_radius ** 2)
+        for r0, r1, extra in zip(plain.routes, spread.routes, spread.spread, strict=True):
+            np.testing.assert_allclose(lane(r1) - lane(r0), extra)
+        offsets.append(spread.spread.copy())
+        again = run_episode(env, spread, seed=seed)  # the same start, the same draw
+        np.testing.assert_array_equal(again.states, b.states)
+    offsets = np.concatenate(offsets)
+    assert offsets.std() > 0.06 and offsets.min() < 0.05 and offsets.max() > 0.25
+    with pytest.raises(ValueError, match="lane_spread must be a non-negative"):
+        ViaPointController(env, lane_spread=-0.1)
+
+
 def test_via_point_controller_is_deterministic_given_the_seed():
     env = ConstrainedSpread(layout=THREE, noise_std=0.05)
     ctrl = ViaPointController(env)

@@ -42,7 +42,7 @@ from dicrl_torch.runs.runner import RunSettings, TrainerSpec, run_all_in_one
 torch.set_num_threads(1)
 
 ROOT = Path(__file__).resolve().parents[1]
-MAX_STEPS = 30  # the via-point experts settle within 25 steps (2 agents)
+MAX_STEPS = 30  # the via-point experts settle within 23 steps (2 agents)
 # SAC at toy scale (as tests/test_generic_sac.py).
 TINY_SOLVER = {"learning_starts": 30, "batch_size": 16, "net_arch": [16, 16], "n_envs": 2,
                "buffer_size": 2000}
@@ -227,6 +227,13 @@ def test_the_shipped_mpe_quick_config_composes_unchanged():
     assert cfg.name == "mpe_quick" and list(cfg.split) == [10, 10]
     assert cfg.solver.solver.absorbing is False
     assert cfg.solver.solver.split_cost_critic and cfg.solver.solver.per_agent_critics
+    assert cfg.env.expert.lane_spread == 0.3  # the experts vary their lanes
+    from common import mpe_task  # the expert node reaches the controller
+    tiny = compose_train("experiment=mpe_quick", *CONFIG_TINY)
+    assert mpe_task(tiny).expert_kwargs == {"lane_spread": 0.3}
+    from config_checks import ConfigError
+    with pytest.raises(ConfigError, match="did you mean 'lane_spread'"):
+        check_config(compose_train("experiment=mpe_quick", "+env.expert.lane_sprad=0.3"))
 
 
 # ------------------------------------------------------------------ bad input

@@ -80,6 +80,7 @@ from __future__ import annotations
 import itertools
 import math
 import types
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -811,13 +812,20 @@ class ViaPointController:
         clearance: margin of the inner lane from the disc (default 0.2).
         lane_margin: extra spacing of adjacent lanes beyond ``min_distance`` (0.1).
         safety: planned separation beyond ``min_distance`` (0.05).
+        lane_spread: each agent's lane lies a further ``U(0, lane_spread)`` out in each
+            episode, drawn from a generator seeded by the start state (so still
+            deterministic given it); default 0. Experts who vary their way visit the free
+            cells beside it: with one way only, the cells that a way passes by without
+            entering are never demonstrated, and learners that fly a little wider
+            forbid them (docs/mpe.md).
     """
 
     def __init__(self, env: ConstrainedSpread, *, cruise_speed: float = 1.5,
                  gain: float = 4.0, clearance: float = 0.2, lane_margin: float = 0.1,
-                 safety: float = 0.05) -> None:
+                 safety: float = 0.05, lane_spread: float = 0.0) -> None:
         self.env = env
         self.clearance = _number("clearance", clearance)
+        self.lane_spread = _number("lane_spread", lane_spread)
         self.lane_margin = _number("lane_margin", lane_margin)
         self.safety = _number("safety", safety)
         self._kwargs = {"cruise_speed": cruise_speed, "gain": gain, "switch": 0.15}
@@ -829,7 +837,8 @@ class ViaPointController:
 
     def plan_routes(self, positions: np.ndarray) -> list[np.ndarray]:
         """Each agent's via-points ``[K_i, 2]`` (the last is its landmark) from the
-        starts ``[N, 2]``; sets ``assignment``, ``side`` and ``lane``."""
+        starts ``[N, 2]``; sets ``assignment``, ``side``, ``lane`` and ``spread`` (each
+        lane's extra offset ``[N]``)."""
         layout = self.env.layout
         n, lm = layout.n_agents, layout.landmark_array
         self.assignment = sorted_assignment(layout, positions)
@@ -846,10 +855,14 @@ class ViaPointController:
             else:
                 self.side[i], self.lane[i] = 1, rank - n_right
         r = layout.disc_radius
+        positions = np.ascontiguousarray(positions, dtype=np.float64)
+        draw = np.random.default_rng(zlib.crc32(positions.tobytes()))
+        self.spread = draw.uniform(0.0, self.lane_spread, n) if self.lane_spread > 0 \
+            else np.zeros(n)
         legs = []  # (the lane's side point, the two via-points abreast the disc, target)
         for i in range(n):
-            offset = r + self.clearance + self.lane[i] * (layout.min_distance
-                                                          + self.lane_margin)
+            offset = r + self.clearance + self.spread[i] + self.lane[i] * (
+                layout.min_distance + self.lane_margin + self.lane_spread)
             side = centre + self.side[i] * offset * normal
             legs.append((side, [side - r * e, side + r * e] if r > 0 else [],
                          lm[self.assignment[i]]))
