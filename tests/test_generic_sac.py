@@ -128,6 +128,24 @@ def test_solve_on_a_third_party_game_gives_feature_expectations_of_the_bases():
     assert solver._eval_envs[True][0].env.constrained
 
 
+def test_estimates_from_mean_actions_are_the_deployed_policys_rollouts():
+    sampled, mean = make_solver(), make_solver(estimate_action="mean")
+    a, b = sampled.solve(ETA, COST, 200), mean.solve(ETA, COST, 200)
+    for p, q in zip(sampled.model.actor.parameters(), mean.model.actor.parameters(),
+                    strict=True):
+        torch.testing.assert_close(p, q)  # the rollouts do not change the training
+    assert not torch.equal(a.cost_sums, b.cost_sums)
+    # the same networks and fresh evaluation streams, scored with mean actions
+    deployed = sampled.clone(sampled.seed).evaluate(deterministic=True)
+    torch.testing.assert_close(b.cost_sums, deployed.cost_sums)
+    torch.testing.assert_close(b.mu_r, deployed.mu_r)
+    with pytest.raises(ValueError, match="estimate_action must be one of"):
+        make_solver(estimate_action="greedy")
+    sd = round_trip(mean.state_dict())
+    with pytest.raises(ValueError, match="estimate_action: state 'mean'"):
+        make_solver().load_state_dict(sd)
+
+
 def test_per_agent_critics_split_team_features_equally():
     # PositionCellBasis counts the whole team per cell: no feature is one agent's own,
     # so each agent's reward column is half the joint reward.

@@ -68,7 +68,9 @@ STATE_FORMAT = "dicrl_torch.SACConstrainedSolver/2"
 
 
 # Settings that states saved before they existed lack, with the value those states had.
-_LATER_SETTINGS = {"demo_bc": 0.0, "demo_value_bound": False, "split_cost_critic": False}
+_LATER_SETTINGS = {"demo_bc": 0.0, "demo_value_bound": False, "split_cost_critic": False,
+                   "estimate_action": "sampled"}
+ESTIMATE_ACTIONS = ("sampled", "mean")
 
 
 class SACConstrainedSolver:
@@ -106,6 +108,11 @@ class SACConstrainedSolver:
             ``η``; see the module docstring). Must be a positive number.
         absorbing: treat terminal states as absorbing (module docstring).
         n_eval_episodes: rollouts per :meth:`evaluate` (default of :meth:`solve`).
+        estimate_action: the actions of :meth:`solve`'s rollouts, which estimate ``μ_r``
+            and ``μ_c``: ``"sampled"`` (the MCE policy itself, the paper's model; default)
+            or ``"mean"`` (the deployed policy). Against deterministic experts the sampled
+            policy's drift, e.g. while an agent waits at its start, puts cost on free cells
+            that the experts never drift into (docs/mpe.md).
         learning_rate, buffer_size, batch_size, learning_starts, tau, train_freq,
             gradient_steps: SAC's (``buffer_size`` counts transitions over all envs).
         net_arch: hidden layers of actor and critics.
@@ -151,6 +158,7 @@ class SACConstrainedSolver:
         ent_coef: float = 1.0,
         absorbing: bool = True,
         n_eval_episodes: int = 10,
+        estimate_action: str = "sampled",
         learning_rate: float = 3e-4,
         buffer_size: int = 100_000,
         batch_size: int = 256,
@@ -202,6 +210,10 @@ class SACConstrainedSolver:
             )
         if not _is_int(n_eval_episodes) or n_eval_episodes < 1:
             raise ValueError(f"n_eval_episodes must be a positive int, got {n_eval_episodes!r}.")
+        if estimate_action not in ESTIMATE_ACTIONS:
+            raise ValueError(f"estimate_action must be one of {list(ESTIMATE_ACTIONS)}, got "
+                             f"{estimate_action!r}.")
+        self.estimate_action = str(estimate_action)
         if isinstance(action_margin, bool) or not isinstance(action_margin, int | float) \
                 or not 0.0 < action_margin < 1.0:
             raise ValueError(f"action_margin must be a float in (0, 1), got {action_margin!r}.")
@@ -343,6 +355,7 @@ class SACConstrainedSolver:
             "ent_coef": self.ent_coef, "absorbing": self.absorbing,
             "per_agent_critics": self.per_agent_critics,
             "split_cost_critic": self.split_cost_critic,
+            "estimate_action": self.estimate_action,
             "scale_observations": self.scale_observations, "device": self.device.type,
             "demo_fraction": self.demo_fraction, "demo_bc": self.demo_bc,
             "demo_value_bound": self.demo_value_bound,
@@ -512,7 +525,8 @@ class SACConstrainedSolver:
             The :class:`SACSolution` of the policy after training.
         """
         self._train(eta, cost_weights, timesteps)
-        return self.evaluate(n_eval_episodes)
+        return self.evaluate(n_eval_episodes,
+                             deterministic=self.estimate_action == "mean")
 
     def solve_keeping_best(self, eta: Any, cost_weights: Any, timesteps: int, *, checks: int,
                            restarts: int = 1, n_eval_episodes: int | None = None,
