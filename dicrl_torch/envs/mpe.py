@@ -385,10 +385,8 @@ class ConstrainedSpread(CheckedParallelEnv):
             order-preserving matching (:func:`sorted_assignment`) is landmark ``k``. The
             agents are interchangeable, so this is a labelling, not a change of the
             game; it spares a joint policy learning each assignment once per start
-            order (without it the learners' agents kept their labels' landmarks and
-            crossed over, through free cells that the experts never visit, which the
-            learners then forbade: docs/mpe.md). Starts given in ``options`` keep the
-            caller's order.
+            order (without it SAC policies learned one order and failed the mirror one:
+            docs/mpe.md). Starts given in ``options`` keep the caller's order.
         render_mode: None or ``"rgb_array"``.
     """
 

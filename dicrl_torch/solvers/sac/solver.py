@@ -110,9 +110,8 @@ class SACConstrainedSolver:
         n_eval_episodes: rollouts per :meth:`evaluate` (default of :meth:`solve`).
         estimate_action: the actions of :meth:`solve`'s rollouts, which estimate ``μ_r``
             and ``μ_c``: ``"sampled"`` (the MCE policy itself, the paper's model; default)
-            or ``"mean"`` (the deployed policy). Against deterministic experts the sampled
-            policy's drift, e.g. while an agent waits at its start, puts cost on free cells
-            that the experts never drift into (docs/mpe.md).
+            or ``"mean"`` (the deployed policy, closer to deterministic experts; on the
+            MPE spread it learned fewer true constraints: docs/mpe.md).
         learning_rate, buffer_size, batch_size, learning_starts, tau, train_freq,
             gradient_steps: SAC's (``buffer_size`` counts transitions over all envs).
         net_arch: hidden layers of actor and critics.
