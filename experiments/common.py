@@ -137,8 +137,10 @@ def mpe_task(cfg):
     """The constrained MPE spread's task (``env=mpe_spread``; issue 27)."""
     from dicrl_torch.runs.mpe import build_mpe_task
 
-    expert = OmegaConf.to_container(cfg.env.get("expert") or {})  # ViaPointController's
-    expert = {k: v for k, v in expert.items() if not k.startswith("_")}  # keyword arguments
+    # ViaPointController's keyword arguments; the node's _target_ only lets config_checks
+    # check its keys against the signature.
+    expert = {k: v for k, v in OmegaConf.to_container(cfg.env.get("expert") or {}).items()
+              if not k.startswith("_")}
     return build_mpe_task(
         layout=instantiate(cfg.env.layout), env=OmegaConf.to_container(cfg.env.arena),
         expert=expert,

@@ -11,6 +11,8 @@ from __future__ import annotations
 import contextlib
 import json
 import re
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -379,9 +381,6 @@ def test_mpe_quick_meets_the_targets_at_seed_0(tmp_path):
     is half the run): every D-learner finds the true set (FPR, FNR ≤ 0.10), keeps to it
     (CVR ≤ 0.05) and succeeds at ≥ 0.9 × the experts' rate (issue 27's targets).
     Measured 2026-12-03: FPR 0.00, FNR 0.00, CVR 0.000, SR 0.98 / 1.00 (docs/mpe.md)."""
-    import subprocess
-    import sys
-
     out = subprocess.run([sys.executable, str(ROOT / "experiments" / "train.py"),
                           f"hydra.run.dir={tmp_path}", "experiment=mpe_quick", "seed=0",
                           "algo.run_c_icrl=false", "logger=none"],

@@ -853,10 +853,11 @@ class ViaPointController:
             else:
                 self.side[i], self.lane[i] = 1, rank - n_right
         r = layout.disc_radius
-        positions = np.ascontiguousarray(positions, dtype=np.float64)
-        draw = np.random.default_rng(zlib.crc32(positions.tobytes()))
-        self.spread = draw.uniform(0.0, self.lane_spread, n) if self.lane_spread > 0 \
-            else np.zeros(n)
+        self.spread = np.zeros(n)
+        if self.lane_spread > 0:  # seeded by the starts: deterministic given them
+            starts = np.ascontiguousarray(positions, dtype=np.float64).tobytes()
+            self.spread = np.random.default_rng(zlib.crc32(starts)).uniform(
+                0.0, self.lane_spread, n)
         legs = []  # (the lane's side point, the two via-points abreast the disc, target)
         for i in range(n):
             offset = r + self.clearance + self.spread[i] + self.lane[i] * (
