@@ -5,6 +5,8 @@
   ones (Fig. 2a) or a learner's learned ones (Fig. 2b).
 - :func:`metric_curves`: CR, FPR, FNR, CVR and RFD against the outer iteration, one line
   per learner, the baselines and experts as horizontal reference lines (Fig. 2c-2g).
+- :func:`cost_weight_curves` (not in the paper): every ω_c,j against the outer
+  iteration, true constraints in red, with the threshold rule's line.
 - :func:`identifiability_map` (not in the paper): the true constraint cells coloured by
   their identifiability class (docs/design.md §6), optionally with a learned set as
   crosses; :func:`identifiability_legend` names the classes and the features without a
@@ -440,6 +442,81 @@ def metric_curves(histories: Mapping[str, Sequence[Mapping]], *,
                                                         mfc="none", mec="0.2", mew=1.5)
     fig.legend(handles.values(), handles.keys(), loc="outside lower center",
                ncol=min(len(handles), 6), fontsize=10, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=12)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+
+
+def cost_weight_curves(histories: Mapping[str, Sequence[Mapping]], *,
+                       true: Sequence[bool] | np.ndarray | None = None,
+                       threshold: float | None = None, title: str = "") -> np.ndarray:
+    """Every cost weight ω_c,j against the outer iteration, one panel per learner: the
+    true constraints' in red, the other features' in grey, the threshold dashed. Shows
+    how far the learned set is from the threshold rule's decision (a true feature just
+    under it, a false one just over) and which iteration set each weight.
+
+    Args:
+        histories: method -> its ``results.json`` history, whose entries hold
+            ``outer_iteration`` and ``cost_weights`` (``[L][l_c]``: each learner's ω_c
+            after the iteration). Methods without ``cost_weights`` are left out.
+        true: ``[l_c]`` bool, the true constraint features (None: every line grey).
+        threshold: the threshold rule's ``ω_c,j >= threshold`` (None: no line).
+        title: the figure's title.
+
+    Returns:
+        The RGB image ``[H, W, 3]`` uint8.
+
+    Raises:
+        ValueError: no method holds ``cost_weights``, or the widths disagree with
+            ``true``.
+    """
+    panels = []  # (label, x [n], weights [n, l_c])
+    for method, history in histories.items():
+        rows = [h for h in history if h.get("cost_weights") is not None]
+        if not rows:
+            continue
+        x = np.array([int(h["outer_iteration"]) + 1 for h in rows])
+        w = np.array([h["cost_weights"] for h in rows], dtype=float)  # [n, L, l_c]
+        if w.ndim != 3:
+            raise ValueError(f"the history of {method!r} holds cost_weights of shape "
+                             f"{list(w.shape[1:])} per entry; it must be [learners][features].")
+        for v in range(w.shape[1]):
+            label = f"{method} learner {v + 1}" if w.shape[1] > 1 else method
+            panels.append((label, np.concatenate([[0], x]),
+                           np.concatenate([np.zeros((1, w.shape[2])), w[:, v]])))
+    if not panels:
+        raise ValueError("cost_weight_curves needs a history whose entries hold "
+                         "'cost_weights' (written by DICRL.outer_step since 2026-12-03); "
+                         "rerun the experiment.")
+    width = panels[0][2].shape[1]
+    true = np.zeros(width, bool) if true is None else np.asarray(true, dtype=bool)
+    if true.shape != (width,):
+        raise ValueError(f"true has {true.shape} entries but the histories hold {width} "
+                         f"cost weights; pass the ground truth of this cost basis.")
+    fig = Figure(figsize=(4.2 * len(panels), 3.6), dpi=DPI, layout="constrained")
+    canvas = FigureCanvasAgg(fig)
+    axes = np.atleast_1d(fig.subplots(1, len(panels), sharey=True))
+    for ax, (label, x, w) in zip(axes, panels, strict=True):
+        for j in np.flatnonzero(~true):  # the others first: the true lines stay on top
+            ax.plot(x, w[:, j], color="0.6", lw=0.8, alpha=0.7)
+        for j in np.flatnonzero(true):
+            ax.plot(x, w[:, j], color="C3", lw=1.6)
+        if threshold is not None:
+            ax.axhline(threshold, color="k", ls="--", lw=1.0)
+        ax.set_title(label, fontsize=11)
+        ax.set_xlabel("outer iteration")
+        ax.set_ylim(-0.03, 1.03)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("ω_c")
+    handles = [Line2D([], [], color="0.6", lw=0.8, label="other feature")]
+    if true.any():
+        handles.insert(0, Line2D([], [], color="C3", lw=1.6, label="true constraint"))
+    if threshold is not None:
+        handles.append(Line2D([], [], color="k", ls="--", lw=1.0,
+                              label=f"threshold {threshold:g}"))
+    fig.legend(handles=handles, loc="outside lower center", ncol=3, fontsize=10,
+               frameon=False)
     if title:
         fig.suptitle(title, fontsize=12)
     canvas.draw()

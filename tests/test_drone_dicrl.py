@@ -128,6 +128,10 @@ def test_the_same_trainer_drives_sac_learners_reproducibly_and_privately(demos):
         f"drone{i}/cell({x},{y})" for i, xs in ((0, (0, 1)), (1, (8, 9)))
         for x in xs for y in (0, 1)}
     assert (st.cost_weights[:, t.pinned] == 0).all()
+    # ... at every outer iteration, not only the last (the history's ω_c after each)
+    history = torch.tensor([info["cost_weights"] for info in t.history])  # [n, L, l_c]
+    assert history.shape == (len(t.history), 2, t.pinned.numel())
+    assert (history[:, :, t.pinned] == 0).all()
     assert all(h > 0 for info in t.history for h in info["lga_norm"])  # the outer step moves
     again = trainer(demos, 0)
     again.train(2)
@@ -239,6 +243,7 @@ def test_table2_quick_runs_at_full_scale(tmp_path):
         for row in res["methods"][name]["learners"]:
             assert 0 <= row["SR"] <= 1 and 0 <= row["CVR"] <= 1
     assert res["consensus_max_pairwise_cost_distance"] <= 1e-3
+    assert all(len(h["cost_weights"]) == 2 for h in res["history"]["D-ICRL"])
     for fig in ("fig3b_demonstrations", "constraints_D-ICRL_1", "constraints_D-ICRL_2",
-                "constraints_C-ICRL_1", "constraints_MCE-greedy"):
+                "constraints_C-ICRL_1", "constraints_MCE-greedy", "cost_weights"):
         assert (tmp_path / f"{fig}.png").exists(), fig

@@ -22,6 +22,7 @@ from dicrl_torch.figures import (
     CURVES_FIGSIZE,
     DPI,
     constraint_cells,
+    cost_weight_curves,
     identifiability_cells,
     identifiability_figure,
     identifiability_legend,
@@ -188,6 +189,41 @@ def test_metric_curves_refuses_bad_histories():
         metric_curves({})
     with pytest.raises(ValueError, match="empty"):
         metric_curves({"D-ICRL": []})
+
+
+def weight_history(n_features: int = 4, learners: int = 2) -> list[dict]:
+    """Three outer iterations: feature 0 rises to 0.9, the rest stay at 0.1."""
+    return [{"outer_iteration": n, "cost_weights": [[0.3 * (n + 1)] + [0.1] * (n_features - 1)
+                                                    for _ in range(learners)]}
+            for n in range(3)]
+
+
+def _reddish(img: np.ndarray) -> int:
+    r, g, b = (img[..., k].astype(int) for k in range(3))
+    return int(((r > 180) & (g < 90) & (b < 90)).sum())
+
+
+def test_cost_weight_curves_draw_true_features_red_and_skip_methods_without_weights():
+    true = np.array([True, False, False, False])
+    img = cost_weight_curves({"D-ICRL": weight_history(), "C-ICRL": weight_history(learners=1),
+                              "ME-greedy": [{"step": 0, "FPR": 0.0}]}, true=true,
+                             threshold=0.5)
+    assert img.dtype == np.uint8 and img.ndim == 3
+    assert img.shape[1] == round(3 * 4.2 * DPI)  # three learners' panels, greedy left out
+    grey = cost_weight_curves({"D-ICRL": weight_history()}, true=None)
+    assert _reddish(img) > 0 and _reddish(grey) == 0
+    # another weight moves the picture
+    moved = weight_history()
+    moved[1]["cost_weights"][0][2] = 0.8
+    assert (cost_weight_curves({"D-ICRL": moved}) != cost_weight_curves(
+        {"D-ICRL": weight_history()})).any()
+
+
+def test_cost_weight_curves_refuse_what_they_cannot_draw():
+    with pytest.raises(ValueError, match="cost_weights.*rerun"):
+        cost_weight_curves({"D-ICRL": [{"outer_iteration": 0, "FPR": [0.0]}]})
+    with pytest.raises(ValueError, match="true has .* 4 cost weights"):
+        cost_weight_curves({"D-ICRL": weight_history()}, true=[True, False])
 
 
 # ---------------------------------------------------------------------- train.py

@@ -171,7 +171,7 @@ def test_a_tiny_run_goes_through_the_runner(task, tmp_path):
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["identifiability"] == res["identifiability"]
     for png in ("spread_demonstrations", "constraints_D-ICRL_1", "constraints_D-ICRL_2",
-                "constraints_C-ICRL_1", "constraints_MCE-greedy"):
+                "constraints_C-ICRL_1", "constraints_MCE-greedy", "cost_weights"):
         assert (tmp_path / f"{png}.png").stat().st_size > 0
     demos = load_continuous_demonstrations(tmp_path / "demos.npz")
     assert demos == task.demos

@@ -404,6 +404,8 @@ class DICRL:
             "seconds": time.perf_counter() - t0,
             "multiplier": st.eta_bar[:, -1].tolist(),
             "lga_norm": lga.norm(dim=1).tolist(),
+            # [L][d]: each local learner's ω_c after the step (figures.cost_weight_curves)
+            "cost_weights": st.cost_weights.tolist(),
         }
         self.history.append(info)
         return info

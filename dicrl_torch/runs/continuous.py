@@ -361,8 +361,16 @@ class SACTask:
 
     def figures(self, *, methods: dict, histories: dict, experiment: str,
                 eval_every: int) -> dict[str, np.ndarray]:
-        """None here: a game adds its own."""
-        return {}
+        """``cost_weights``: every ω_c,j of the bi-level methods' learners against the
+        outer iteration, beside the threshold (:func:`~dicrl_torch.figures.cost_weight_curves`);
+        a game adds its own figures to these."""
+        from dicrl_torch.figures import cost_weight_curves
+
+        if not any(h.get("cost_weights") is not None for hs in histories.values() for h in hs):
+            return {}  # e.g. a history checkpointed before the weights were recorded
+        return {"cost_weights": cost_weight_curves(
+            histories, true=self.true, threshold=self.threshold,
+            title=f"{experiment}: the cost weights by outer iteration")}
 
 
 def feature_strip(learned: np.ndarray, true: np.ndarray | None, *, title: str = ""

@@ -104,7 +104,11 @@ class DroneTask(SACTask):
 
     def figures(self, *, methods: dict, histories: dict, experiment: str,
                 eval_every: int) -> dict[str, np.ndarray]:
-        """Fig. 3b: the demonstrations and the true constraint cells."""
-        return {"fig3b_demonstrations": render_arena(
+        """Fig. 3b: the demonstrations and the true constraint cells; the cost weights'
+        curves."""
+        images = super().figures(methods=methods, histories=histories,
+                                 experiment=experiment, eval_every=eval_every)
+        images["fig3b_demonstrations"] = render_arena(
             trajectories=[s[:, :, :2] for s in self.drone_demos.states],
-            constraint_cells=self.true, title="Demonstrations and the true constraint cells")}
+            constraint_cells=self.true, title="Demonstrations and the true constraint cells")
+        return images

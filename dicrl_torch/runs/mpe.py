@@ -512,14 +512,17 @@ class MPETask(SACTask):
     # ------------------------------------------------------------------ figures
     def figures(self, *, methods: dict, histories: dict, experiment: str,
                 eval_every: int) -> dict[str, np.ndarray]:
-        """The demonstrations and the true constraint cells."""
+        """The demonstrations and the true constraint cells; the cost weights' curves."""
         true = self.true if self.true is not None else np.zeros(self.cost_basis.dim, bool)
         paths = [s[:int(n) + 1, :, :2] for s, n in zip(self.demos.states, self.demos.lengths,
                                                          strict=True)]
-        return {"spread_demonstrations": render_spread(
+        images = super().figures(methods=methods, histories=histories,
+                                 experiment=experiment, eval_every=eval_every)
+        images["spread_demonstrations"] = render_spread(
             self.layout, cells=self._cells(true), trajectories=paths,
             title=self._title(f"{experiment}: {self.demos.n_episodes} demonstrations and "
-                              f"the true constraints (hatched)", true))}
+                              f"the true constraints (hatched)", true))
+        return images
 
 
 # ------------------------------------------------------------------ builder
