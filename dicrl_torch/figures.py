@@ -483,8 +483,7 @@ def cost_weight_curves(histories: Mapping[str, Sequence[Mapping]], *,
                              f"{list(w.shape[1:])} per entry; it must be [learners][features].")
         for v in range(w.shape[1]):
             label = f"{method} learner {v + 1}" if w.shape[1] > 1 else method
-            panels.append((label, np.concatenate([[0], x]),
-                           np.concatenate([np.zeros((1, w.shape[2])), w[:, v]])))
+            panels.append((label, x, w[:, v]))  # ω_c(0) is not in the history
     if not panels:
         raise ValueError("cost_weight_curves needs a history whose entries hold "
                          "'cost_weights' (written by DICRL.outer_step since 2026-12-03); "
@@ -498,10 +497,11 @@ def cost_weight_curves(histories: Mapping[str, Sequence[Mapping]], *,
     canvas = FigureCanvasAgg(fig)
     axes = np.atleast_1d(fig.subplots(1, len(panels), sharey=True))
     for ax, (label, x, w) in zip(axes, panels, strict=True):
+        dot = "." if len(x) == 1 else None  # one iteration: a point, not a line
         for j in np.flatnonzero(~true):  # the others first: the true lines stay on top
-            ax.plot(x, w[:, j], color="0.6", lw=0.8, alpha=0.7)
+            ax.plot(x, w[:, j], color="0.6", lw=0.8, alpha=0.7, marker=dot)
         for j in np.flatnonzero(true):
-            ax.plot(x, w[:, j], color="C3", lw=1.6)
+            ax.plot(x, w[:, j], color="C3", lw=1.6, marker=dot)
         if threshold is not None:
             ax.axhline(threshold, color="k", ls="--", lw=1.0)
         ax.set_title(label, fontsize=11)

@@ -67,12 +67,18 @@ def false_negative_rate(learned, true) -> float | None:
     return float((true & ~learned).sum() / n) if n else 0.0
 
 
+THRESHOLD_TOLERANCE = 1e-9  # far below any step, far above float64 rounding
+
+
 def learned_constraints(cost_weights, threshold: float = 0.5) -> np.ndarray:
-    """``ω_c,j >= threshold`` marks feature ``j`` as a learned constraint."""
+    """``ω_c,j >= threshold`` marks feature ``j`` as a learned constraint, up to
+    ``THRESHOLD_TOLERANCE``: a clipped first LSCA step puts a weight at exactly
+    β(0) = 0.5, and the consensus mix of equal values then rounds it to 0.4999999999999993
+    (measured, MPE seed 1), which must not flip the decision."""
     if not 0.0 < threshold <= 1.0:
         raise ValueError(f"threshold must lie in (0, 1], got {threshold}.")
     w = np.asarray(cost_weights.cpu() if isinstance(cost_weights, torch.Tensor) else cost_weights)
-    return w >= threshold
+    return w >= threshold - THRESHOLD_TOLERANCE
 
 
 def reward_function_distance(weights, true_weights) -> float:

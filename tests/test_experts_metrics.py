@@ -101,6 +101,9 @@ def test_constraint_rates_and_rfd():
     assert false_positive_rate(np.zeros(5, bool), true) == 0.0
     assert false_negative_rate(true, true) == 0.0
     assert learned_constraints(np.array([0.2, 0.5, 0.9])).tolist() == [False, True, True]
+    # a weight at the threshold up to float rounding (a consensus mix of 0.5 and 0.5)
+    assert learned_constraints(np.array([0.4999999999999993, 0.4999, 0.5])).tolist() == [
+        True, False, True]
     assert reward_function_distance([1.0, 2.0], [1.0, 1.0]) == pytest.approx(1 / np.sqrt(2))
     with pytest.raises(TypeError):
         false_positive_rate(np.ones(5), true)
