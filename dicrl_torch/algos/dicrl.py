@@ -45,6 +45,7 @@ from dicrl_torch.algos.icrl import dual_gradient, local_gradient
 from dicrl_torch.algos.models import LearnerModel, ModelSolution, TabularLearnerModel
 from dicrl_torch.comm.graphs import MixingSchedule, check_inner_schedule, check_outer_schedule
 from dicrl_torch.features.bases import FeatureBasis
+from dicrl_torch.metrics import learned_constraints
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 Schedule = MixingSchedule
@@ -520,7 +521,8 @@ class DICRL:
 
         base = ll(kept)
         m = self.stats[i].m
-        candidates = sorted(torch.nonzero(kept >= threshold).flatten().tolist(),
+        above = torch.from_numpy(learned_constraints(kept, threshold))  # the table's rule
+        candidates = sorted(torch.nonzero(above).flatten().tolist(),
                             key=lambda j: (float(kept[j]), j))
         if progress:
             from tqdm.auto import tqdm
