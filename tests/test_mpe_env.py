@@ -22,6 +22,7 @@ from dicrl_torch.envs.mpe import (
     NominalController,
     SpreadLayout,
     ViaPointController,
+    covering_agents,
     landmarks_covered,
     pairwise_too_close,
     run_episode,
@@ -62,7 +63,8 @@ def test_spaces_state_and_observation_layout():
         pos = state[:, :2]
         assert np.all((pos >= [x0, y0]) & (pos <= [x1, y1]))
         assert not pairwise_too_close(pos, layout.min_distance + START_MARGIN).any()
-        assert set(infos["agent_0"]) == {"violated", "in_disc", "too_close", "position"}
+        assert set(infos["agent_0"]) == {"violated", "in_disc", "too_close", "reached",
+                                         "position"}
 
 
 # ---------------------------------------------------------------- the joint wrapper
@@ -231,6 +233,54 @@ def test_landmarks_covered_needs_distinct_agents():
     assert not landmarks_covered([[0.05, 0.0], [0.0, 0.05]], lm)  # one agent, two marks
     assert not landmarks_covered([[0.0, 0.0], [1.0, SUCCESS_RADIUS + 0.01]], lm)
     assert SUCCESS_RADIUS == 0.1
+
+
+def test_covering_agents_is_a_maximum_matching_brute_forced():
+    """Against every assignment of landmarks to distinct agents (itertools): the number
+    of covering agents is the largest number of landmarks any assignment covers, and the
+    covering agents are one such assignment's."""
+    import itertools
+
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        n = int(rng.integers(1, 5))
+        m = int(rng.integers(1, n + 1))
+        pos, lm = rng.uniform(0, 0.4, (n, 2)), rng.uniform(0, 0.4, (m, 2))
+        near = np.linalg.norm(lm[:, None] - pos[None], axis=-1) <= 0.15  # [M, N]
+        best = max(sum(near[j, p[j]] for j in range(m))
+                   for p in itertools.permutations(range(n), m))
+        got = covering_agents(pos, lm, 0.15)
+        assert got.shape == (n,) and got.sum() == best
+        # The covering agents can be matched to landmarks they are near.
+        agents = np.flatnonzero(got)
+        assert any(all(near[j, a] for j, a in zip(p, agents, strict=True))
+                   for p in itertools.permutations(range(m), len(agents)))
+        assert landmarks_covered(pos, lm, 0.15) == (best == m)
+
+
+@pytest.mark.parametrize("controller", ["via", "nominal"])
+@pytest.mark.parametrize("constrained", [True, False], ids=["true", "nominal"])
+def test_reached_is_reported_at_the_last_step_and_agrees_with_task_success(controller,
+                                                                           constrained):
+    """``info["reached"]`` is False before the last step; at it, every agent reached with
+    no violation exactly when the env's own task-success verdict holds."""
+    env = ConstrainedSpread(constrained=constrained)
+    make = ViaPointController if controller == "via" else NominalController
+    verdicts = []
+    for seed in range(12):
+        ep = run_episode(env, make(env), seed=seed)
+        reached = np.zeros(env.n_agents, dtype=bool)
+        for t, info in enumerate(ep.infos):
+            flags = [v["reached"] for v in info.values()]
+            if t < env.max_steps - 1:
+                assert not any(flags)
+            for a, v in info.items():
+                reached[env._index[a]] |= v["reached"]
+        assert (reached.all() and not ep.violated.any()) == ep.success
+        verdicts.append(ep.success)
+    # Both verdicts occur: the experts succeed in either game; the nominal controller
+    # violates on the way (and in the nominal game still covers: reached, no success).
+    assert all(verdicts) if controller == "via" else not any(verdicts)
 
 
 def test_layout_refuses_unsolvable_or_inconsistent_geometry():

@@ -112,6 +112,28 @@ def test_the_demonstrations_respect_the_true_constraints(task):
     assert rows["Experts (nominal)"]["CVR"] > 0.5 and rows["Experts (nominal)"]["SR"] == 0.0
 
 
+def test_a_solvers_reached_agents_give_the_spreads_task_success(task):
+    """The solver's per-agent ``reached`` (the env's last-step covering) is the task's
+    success, as the table computes it from the final positions: every agent reached and
+    none violated exactly when :func:`spread_success`; success under the TRUE set
+    (with no agent violating anything else) is the mean of that."""
+    solver = task.base.clone(5)
+    for true_game in (False, True):
+        ev = solver.evaluate(16, deterministic=False, true_game=true_game,
+                             trajectories=True, rng=np.random.default_rng(1))
+        final = np.stack([p[-1, :, :2] for p in ev.paths])
+        violated = ev.violated.numpy()
+        per_episode = ev.reached.numpy().all(1) & ~violated.any(1)
+        np.testing.assert_array_equal(per_episode,
+                                      spread_success(final, violated, task.layout))
+    # Agents placed on the landmarks (one per landmark) reach them at the last step.
+    env = task._true_env
+    env.reset(seed=0, options={"positions": task.layout.landmark_array})
+    for _ in range(env.max_steps):
+        _, _, _, _, infos = env.step({a: np.zeros(2) for a in env.agents})
+    assert all(v["reached"] for v in infos.values())
+
+
 def test_identifiability_counts_are_consistent(task):
     ident = task.identifiability()
     true = torch.from_numpy(task.true)
@@ -211,6 +233,10 @@ def test_the_mpe_quick_config_runs_end_to_end(cost, tmp_path):
                              communicator=lambda n: build(cfg.comm, n_learners=n))
     rows = [r for m in ("D-ICRL", "C-ICRL") for r in res["methods"][m]["learners"]]
     assert len(rows) == 3 and all(0 <= r["CVR"] <= 1 and 0 <= r["SR"] <= 1 for r in rows)
+    # the last solve's chunks were ranked by success under each learner's own set
+    assert all(len(r["final_checks"]) == 2 for r in rows)
+    assert all(0 <= c["success_under_constraints"] <= 1
+               for r in rows for c in r["final_checks"])
     if cells:
         assert int(t.true.sum()) == 5 and res["identifiability"]["n_required"] == 5
         assert all(0 <= r["FPR"] <= 1 for r in rows)
@@ -234,6 +260,7 @@ def test_the_shipped_mpe_quick_config_composes_unchanged():
     # the first LSCA step clips every feature the warm-up policy enters (docs/mpe.md)
     assert cfg.algo.init_multiplier == -5.0 and cfg.algo.lsca_curvature == 10.0
     assert cfg.algo.steps.beta_power == 0.65 and cfg.solver.n_eval_episodes == 40
+    assert cfg.solver.final_score == "learned_success"
     from common import mpe_task  # the expert node reaches the controller
     tiny = compose_train("experiment=mpe_quick", *CONFIG_TINY)
     assert mpe_task(tiny).expert_kwargs == {"lane_spread": 0.5, "exit_spread": 0.2}
@@ -317,8 +344,6 @@ def test_a_basis_built_for_the_drone_arena_is_refused(task):
 def test_settings_the_spread_cannot_honour_are_refused(task):
     with pytest.raises(ValueError, match="absorbing=False"):
         tiny_task(demos=task.demos, solver={**TINY_SOLVER, "absorbing": True})
-    with pytest.raises(ValueError, match="final_score='penalised_return'"):
-        tiny_task(demos=task.demos, final_score="learned_success")
     with pytest.raises(ValueError, match="landmarks=layout.landmarks"):
         tiny_task(demos=task.demos,
                   reward_basis=LandmarkRewardBasis(n_agents=2, landmarks=[[0, 1], [1, 1]]))

@@ -310,10 +310,11 @@ def pairwise_too_close(pos: Any, min_distance: float, active: Any = None) -> Any
     return close.any(-1)
 
 
-def landmarks_covered(positions: Any, landmarks: Any,
-                      radius: float = SUCCESS_RADIUS) -> bool:
-    """Whether every landmark lies within ``radius`` of a distinct agent (a perfect
-    matching of landmarks to agents by a bipartite augmenting-path search).
+def covering_agents(positions: Any, landmarks: Any,
+                    radius: float = SUCCESS_RADIUS) -> np.ndarray:
+    """``[N]`` bool: the agents that cover a landmark in a maximum matching of landmarks
+    to distinct agents within ``radius`` (a bipartite augmenting-path search). Every
+    landmark is covered when ``M`` agents are (:func:`landmarks_covered`).
 
     Args:
         positions: ``[N, 2]`` agents' positions.
@@ -333,7 +334,23 @@ def landmarks_covered(positions: Any, landmarks: Any,
                     return True
         return False
 
-    return all(augment(j, [False] * len(pos)) for j in range(len(lm)))
+    for j in range(len(lm)):
+        augment(j, [False] * len(pos))
+    return np.array([o >= 0 for o in owner], dtype=bool)
+
+
+def landmarks_covered(positions: Any, landmarks: Any,
+                      radius: float = SUCCESS_RADIUS) -> bool:
+    """Whether every landmark lies within ``radius`` of a distinct agent (a perfect
+    matching of landmarks to agents: :func:`covering_agents`).
+
+    Args:
+        positions: ``[N, 2]`` agents' positions.
+        landmarks: ``[M, 2]`` landmark positions.
+        radius: the covering distance.
+    """
+    n_landmarks = len(np.asarray(landmarks).reshape(-1, 2))
+    return int(covering_agents(positions, landmarks, radius).sum()) == n_landmarks
 
 
 # -------------------------------------------------------------------------- the env
@@ -366,10 +383,13 @@ class ConstrainedSpread(CheckedParallelEnv):
     Action of each: ``[2]`` float32 force command in ``[-1, 1]^2`` (clipped). Reward:
     mpe2's ``simple_spread`` reward. The state (:meth:`state`) is ``[N, 4]`` float64:
     ``x, y, vx, vy`` per agent. ``infos[agent]`` has ``violated`` (this step),
-    ``in_disc``, ``too_close`` and ``position`` (``[2]`` float64). In the true game a
-    violator is terminated; every agent still flying is truncated after ``max_steps``
-    (episodes always last ``max_steps`` steps unless every agent froze). The random
-    stream (starts, noise) depends only on the seed.
+    ``in_disc``, ``too_close``, ``position`` (``[2]`` float64) and ``reached``: at the
+    last step (``max_steps``), whether the agent, still flying, then covers a landmark in
+    a maximum matching (:func:`covering_agents`); False before. So every agent of an
+    episode reached its goal, with no violation, exactly when :meth:`task_success`. In
+    the true game a violator is terminated; every agent still flying is truncated after
+    ``max_steps`` (episodes always last ``max_steps`` steps unless every agent froze).
+    The random stream (starts, noise) depends only on the seed.
 
     Args:
         layout: the geometry (default :class:`SpreadLayout()`: 2 agents).
@@ -544,6 +564,14 @@ class ConstrainedSpread(CheckedParallelEnv):
         self._history.append(positions.copy())
 
         global_reward = float(self._scenario.global_reward(w))
+        # Success is judged at the end: only the last step reports the agents that then
+        # cover a landmark (``reached``), so a solver's "reached in the episode" is
+        # "covering at the end".
+        last = self.timestep >= self.max_steps
+        covering = np.zeros(self.n_agents, dtype=bool)
+        if last:  # frozen agents cover nothing (a violation already failed the task)
+            covering[self._active] = covering_agents(positions[self._active],
+                                                     layout.landmark_array)
         obs, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
         for a in given:
             i = self._index[a]
@@ -551,8 +579,9 @@ class ConstrainedSpread(CheckedParallelEnv):
             local = float(self._scenario.reward(w.agents[i], w))
             rewards[a] = (1 - self.local_ratio) * global_reward + self.local_ratio * local
             terms[a] = not bool(self._active[i])
-            truncs[a] = not terms[a] and self.timestep >= self.max_steps
-            infos[a] = self._info(i, bool(disc[i]), bool(close[i]))
+            truncs[a] = not terms[a] and last
+            infos[a] = self._info(i, bool(disc[i]), bool(close[i]),
+                                  reached=bool(covering[i]))
         self.agents = [a for a in given if not (terms[a] or truncs[a])]
         return obs, rewards, terms, truncs, infos
 
@@ -606,9 +635,9 @@ class ConstrainedSpread(CheckedParallelEnv):
             frozen=~self._active if started and self.constrained else None, title=title)
 
     # ---- helpers ------------------------------------------------------------------
-    def _info(self, i: int, disc: bool, close: bool) -> dict[str, Any]:
+    def _info(self, i: int, disc: bool, close: bool, reached: bool = False) -> dict[str, Any]:
         return {"violated": disc or close, "in_disc": disc, "too_close": close,
-                "position": self._world.agents[i].state.p_pos.copy()}
+                "reached": reached, "position": self._world.agents[i].state.p_pos.copy()}
 
     def _check_command(self, agent: str, a: Any) -> np.ndarray:
         """``a`` as a ``[2]`` float64 command, clipped to ``[-1, 1]``."""

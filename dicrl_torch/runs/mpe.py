@@ -272,8 +272,7 @@ class MPETask(SACTask):
 
     Raises:
         ValueError: the solver's game, the demonstrations or a feature basis do not fit
-            the layout (the message names the field and the fix), or ``final_score`` is
-            ``learned_success`` (ConstrainedSpread reports no per-agent goal).
+            the layout (the message names the field and the fix).
     """
 
     columns = ("FPR", "FNR", "FNR_required", "CVR", "SR")
@@ -301,10 +300,6 @@ class MPETask(SACTask):
                              "ConstrainedSpread's episodes end at max_steps (truncated), "
                              "not in a goal state: demonstrations would earn a bonus no "
                              "rollout earns. Build the solver with absorbing=False.")
-        if settings.get("final_score") == "learned_success":
-            raise ValueError("final_score='learned_success' ranks policies by the agents "
-                             "that reach their goal, which ConstrainedSpread does not "
-                             "report per agent; use final_score='penalised_return'.")
         self._true_env = ConstrainedSpread(layout=layout, constrained=True,
                                            **self.env_kwargs)
         seed = int(seed)
