@@ -409,8 +409,8 @@ def test_mpe_quick_meets_the_targets_at_seed_0(tmp_path):
     """``experiment=mpe_quick`` as shipped, D-ICRL only (C-ICRL off: its own last solve
     is half the run): every D-learner finds the true set (FPR, FNR ≤ 0.10), keeps to it
     (CVR ≤ 0.05) and succeeds at ≥ 0.9 × the experts' rate (issue 27's targets).
-    Measured 2026-12-03 (the first-step settings): FPR 0.00, FNR 0.00, CVR 0.000, SR
-    1.00 / 1.00 at seed 0; seed 2 learns the exact set too but flies SR 0.00 (docs/mpe.md)."""
+    Measured 2026-12-04 (full runs, seeds 0-2): FPR 0.00, FNR 0.00, CVR 0.000 and SR 1.00
+    for every D-learner (docs/mpe.md)."""
     out = subprocess.run([sys.executable, str(ROOT / "experiments" / "train.py"),
                           f"hydra.run.dir={tmp_path}", "experiment=mpe_quick", "seed=0",
                           "algo.run_c_icrl=false", "logger=none"],
