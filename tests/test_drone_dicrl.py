@@ -185,7 +185,7 @@ def test_table2_config_is_checked():
                        ("solver.eval_action=greedy", "'mean' or 'sampled'"),
                        ("solver.final_timesteps=0", "solver.final_timesteps=0 is invalid"),
                        ("solver.final_checks=0", "solver.final_checks=0 is invalid"),
-                       ("solver.final_checks=9000", "exceeds solver.final_timesteps"),
+                       ("solver.final_checks=20000", "exceeds solver.final_timesteps"),
                        ("solver.final_restarts=0", "solver.final_restarts=0 is invalid"),
                        ("solver.final_score=best", "'penalised_return' or 'learned_success'"),
                        ("+solver.solver.ent_coeff=1", "did you mean 'ent_coef'")]:
@@ -195,7 +195,7 @@ def test_table2_config_is_checked():
 
 TINY = ["experiment=table2_quick", "env.arena.max_steps=20", "eval_episodes=2",
         "solver.warmup_timesteps=60", "solver.timesteps=20", "solver.n_eval_episodes=1",
-        "solver.final_checks=2", "solver.final_restarts=2",
+        "solver.final_timesteps=40", "solver.final_checks=2", "solver.final_restarts=2",
         "solver.final_score=learned_success",
         "solver.solver.learning_starts=30", "solver.solver.batch_size=16",
         "solver.solver.net_arch=[16,16]", "algo.outer_iterations=1", "algo.inner_steps=2",
@@ -225,25 +225,45 @@ def test_table2_entry_point_end_to_end(tmp_path):
     assert (tmp_path / "constraints_D-ICRL_1.png").exists()  # Fig. 3c, per learner
 
 
-@pytest.mark.slow  # ~4.5 min alone; beside another job it can pass the default 600 s limit
-@pytest.mark.timeout(1500)
-def test_table2_quick_runs_at_full_scale(tmp_path):
-    """experiment=table2_quick as shipped (~3 min): every row, figure and history entry.
-    Its numbers are far from the paper's (docs/drones.md sets experiment=table2 beside
-    them); this checks the run, not the targets."""
-    out = subprocess.run([sys.executable, str(TRAIN),
-                          f"hydra.run.dir={tmp_path}", "experiment=table2_quick"],
-                         capture_output=True, text=True, cwd=ROOT, timeout=1200)
+@pytest.fixture(scope="module")
+def table2_quick_seed_0(tmp_path_factory):
+    """``experiment=table2_quick`` as shipped, seed 0: ``(run dir, results, stdout)``.
+    ~800-900 s beside another job on 2 cores (docs/drones.md)."""
+    out_dir = tmp_path_factory.mktemp("table2_quick")
+    out = subprocess.run([sys.executable, str(TRAIN), f"hydra.run.dir={out_dir}",
+                          "experiment=table2_quick", "seed=0"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=2400)
     assert out.returncode == 0, out.stderr[-3000:]
-    res = json.loads((tmp_path / "results.json").read_text())
+    return out_dir, json.loads((out_dir / "results.json").read_text()), out.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(2700)
+def test_table2_quick_runs_at_full_scale(table2_quick_seed_0):
+    """Every row, figure and history entry of the shipped quick run."""
+    out_dir, res, stdout = table2_quick_seed_0
     assert res["experiment"] == "table2_quick"
-    assert len(res["history"]["D-ICRL"]) == 4
+    assert len(res["history"]["D-ICRL"]) == 6
     assert all(len(h["FPR"]) == 2 for h in res["history"]["D-ICRL"])
     for name in ("D-ICRL", "C-ICRL", "M(C)E-greedy"):
         for row in res["methods"][name]["learners"]:
             assert 0 <= row["SR"] <= 1 and 0 <= row["CVR"] <= 1
+            assert 0 <= row["FPR"] <= 1 and 0 <= row["FNR"] <= 1
     assert res["consensus_max_pairwise_cost_distance"] <= 1e-3
     assert all(len(h["cost_weights"]) == 2 for h in res["history"]["D-ICRL"])
+    assert "FPR" in stdout and "FNR" in stdout
     for fig in ("fig3b_demonstrations", "constraints_D-ICRL_1", "constraints_D-ICRL_2",
                 "constraints_C-ICRL_1", "constraints_MCE-greedy", "cost_weights"):
-        assert (tmp_path / f"{fig}.png").exists(), fig
+        assert (out_dir / f"{fig}.png").exists(), fig
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(2700)
+@pytest.mark.xfail(strict=True, reason="issue 26, open: at seed 0 learner 2's last solve "
+                   "keeps a policy with SR 0.50, CVR 0.500 (docs/drones.md, 2026-12-04). "
+                   "Remove this marker when the target holds.")
+def test_table2_quick_meets_the_quick_targets_at_seed_0(table2_quick_seed_0):
+    """Issue 26's targets for the quick config: every D-learner SR >= 0.8, CVR <= 0.15."""
+    _, res, _ = table2_quick_seed_0
+    for row in res["methods"]["D-ICRL"]["learners"]:
+        assert row["SR"] >= 0.8 and row["CVR"] <= 0.15, (row["SR"], row["CVR"])
