@@ -228,7 +228,7 @@ def test_table2_entry_point_end_to_end(tmp_path):
 @pytest.fixture(scope="module")
 def table2_quick_seed_0(tmp_path_factory):
     """``experiment=table2_quick`` as shipped, seed 0: ``(run dir, results, stdout)``.
-    ~800-900 s beside another job on 2 cores (docs/drones.md)."""
+    750 s alone on 2 cores, 804-916 s beside another job (docs/drones.md)."""
     out_dir = tmp_path_factory.mktemp("table2_quick")
     out = subprocess.run([sys.executable, str(TRAIN), f"hydra.run.dir={out_dir}",
                           "experiment=table2_quick", "seed=0"],
