@@ -44,6 +44,7 @@ rates the demonstration at least that high, so the fixed point is unchanged.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -57,6 +58,8 @@ from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
 __all__ = ["DecomposedCritic", "DecomposedSAC", "DecomposedSACPolicy"]
+
+_SQUASH_EPSILON = 1e-6  # SB3's SquashedDiagGaussianDistribution epsilon
 
 
 def _polyak(params: list[torch.Tensor], targets: list[torch.Tensor], tau: float) -> None:
@@ -115,14 +118,16 @@ class DecomposedSAC(SAC):
         super()._setup_model()
         if self.ent_coef_optimizer is not None:
             raise ValueError("DecomposedSAC needs a fixed ent_coef (a number), not 'auto'.")
-        # torch's Adam takes its per-tensor loop on CPU by default; the multi-tensor path
-        # does the same arithmetic (bit-identical results) in far fewer dispatches, which
-        # is what a 64x64 network's update costs. A loaded optimiser state keeps the flag.
+        # torch's Adam takes its per-tensor loop on CPU by default; the fused kernel does
+        # Adam's arithmetic for every tensor in one call (equal to the loop up to float
+        # rounding), and dispatches are what a 64x64 network's update costs. A loaded
+        # optimiser state keeps the flags.
         for optimizer in (self.actor.optimizer, self.critic.optimizer):
             for group in optimizer.param_groups:
-                group["foreach"] = True
+                group["foreach"], group["fused"] = False, True
         self._critic_params = list(self.critic.parameters())
         self._target_params = list(self.critic_target.parameters())
+        self._actor_params = list(self.actor.parameters())
 
     demo_bc: float = 0.0
     """Weight of the Q-filtered demonstration loss (module docstring); 0: none."""
@@ -144,6 +149,22 @@ class DecomposedSAC(SAC):
         self._demo_accept.append(better.mean())
         return self.demo_bc * scale * (better * gap).mean()
 
+    def _action_log_prob(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """SB3's ``actor.action_log_prob`` (squashed Gaussian, ``[B, d_a]`` actions and
+        ``[B, 1]`` log-densities) with the same random draw and the same arithmetic, minus
+        ``torch.distributions``' per-call objects and argument checks."""
+        if self.use_sde:  # a state-dependent noise matrix: SB3's own path
+            action, log_prob = self.actor.action_log_prob(obs)
+            return action, log_prob.reshape(-1, 1)
+        mean, log_std, _ = self.actor.get_action_dist_params(obs)
+        std = log_std.exp()
+        gaussian = mean + torch.empty_like(mean).normal_() * std  # Normal.rsample
+        action = torch.tanh(gaussian)
+        log_prob = (-((gaussian - mean) ** 2) / (2 * std**2) - std.log()
+                    - math.log(math.sqrt(2 * math.pi))).sum(-1)
+        log_prob = log_prob - torch.log(1 - action**2 + _SQUASH_EPSILON).sum(-1)
+        return action, log_prob.reshape(-1, 1)
+
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         self.policy.set_training_mode(True)
         self._demo_accept: list[torch.Tensor] = []
@@ -157,11 +178,10 @@ class DecomposedSAC(SAC):
             if self.use_sde:
                 self.actor.reset_noise()
             # Drawn before the target's next actions, in SB3's order (same random numbers).
-            actions_pi, log_prob = self.actor.action_log_prob(data.observations)
-            log_prob = log_prob.reshape(-1, 1)
+            actions_pi, log_prob = self._action_log_prob(data.observations)
             n_rewards = data.rewards.shape[1]
             with torch.no_grad():
-                next_actions, next_log_prob = self.actor.action_log_prob(data.next_observations)
+                next_actions, next_log_prob = self._action_log_prob(data.next_observations)
                 next_q = torch.stack(self.critic_target(data.next_observations, next_actions))
                 next_q = next_q.amin(0) - (alpha / n_rewards) * next_log_prob.reshape(-1, 1)
                 target = data.rewards + (1 - data.dones) * self.gamma * next_q  # [B, G]
@@ -181,7 +201,8 @@ class DecomposedSAC(SAC):
             if with_demo:
                 actor_loss = actor_loss + self._demo_loss(data, q_pi.detach())
             self.actor.optimizer.zero_grad()
-            actor_loss.backward()
+            # The actor's gradients only (SB3 also fills the critics', unused).
+            actor_loss.backward(inputs=self._actor_params)
             self.actor.optimizer.step()
 
             if step % self.target_update_interval == 0:
