@@ -96,12 +96,23 @@ def check_shard_contents(cfg) -> None:
                      read=shard_files_read_by(cfg, torchrun_rank(cfg)))
 
 
+def drone_dynamics(cfg):
+    """The arena's :class:`DroneDynamics` from ``env.arena.dynamics`` (the defaults
+    where the node is absent)."""
+    from dicrl_torch.envs.drones import DroneDynamics
+
+    node = OmegaConf.select(cfg, "env.arena.dynamics", default=None)
+    return DroneDynamics() if node is None else instantiate(node)
+
+
 def drone_env_factory(cfg):
     """The SAC solver's ``env_factory`` of the arena: :class:`JointDroneEnv` with the
     config's ``env.arena`` settings (the solver adds ``constrained``)."""
     from dicrl_torch.envs.drones import JointDroneEnv
 
-    return functools.partial(JointDroneEnv, **OmegaConf.to_container(cfg.env.arena))
+    arena = OmegaConf.to_container(cfg.env.arena)
+    arena["dynamics"] = drone_dynamics(cfg)
+    return functools.partial(JointDroneEnv, **arena)
 
 
 def sac_task_settings(cfg) -> dict:
@@ -130,7 +141,7 @@ def drone_task(cfg):
     solver = build(cfg.solver.solver, reward_basis=reward_basis, cost_basis=cost_basis,
                    seed=derived_seed(cfg.seed, 1), env_factory=drone_env_factory(cfg))
     return DroneTask(solver=solver, reward_basis=reward_basis, cost_basis=cost_basis,
-                     **sac_task_settings(cfg))
+                     dynamics=drone_dynamics(cfg), **sac_task_settings(cfg))
 
 
 def mpe_task(cfg):

@@ -74,8 +74,9 @@ def test_every_drone_target_instantiates(cost, reward):
             "experiment=table2_quick", f"features/cost={cost}", f"features/reward={reward}"])
     rb, cb = instantiate(cfg.features.reward), instantiate(cfg.features.cost)
     solver = build(cfg.solver.solver, reward_basis=rb, cost_basis=cb, seed=0,
-                   env_factory=functools.partial(JointDroneEnv,
-                                                 **{**cfg.env.arena, "max_steps": 5}))
+                   env_factory=functools.partial(JointDroneEnv, **{
+                       **cfg.env.arena, "max_steps": 5,
+                       "dynamics": instantiate(cfg.env.arena.dynamics)}))
     sol = solver.solve([0.0] * rb.dim + [-1.0], [0.0] * cb.dim, 0, n_eval_episodes=1)
     assert sol.mu_r.shape == (rb.dim,) and sol.mu_c.shape == (cb.dim,)
     if callable(getattr(cb, "true_constraints", None)):  # a network basis has no truth

@@ -180,6 +180,34 @@ def test_first_order_response_reaches_command():
     assert v[0] == pytest.approx(1.0)
 
 
+def test_disc_commands_bound_the_speed_in_every_direction():
+    """Under ``"box"`` the diagonal command flies sqrt 2 times faster than an axis
+    command; under ``"disc"`` every direction tops out at ``max_speed``, and commands
+    inside the unit disc fly as under the box."""
+    def settle(dyn, u):
+        pos, vel = np.full(2, 5.0), np.zeros(2)
+        for _ in range(40):  # 13 time constants; no wall within 6 m of travel
+            pos, vel = dyn.step(pos, vel, np.asarray(u, dtype=float))
+            pos = np.full(2, 5.0)
+        return vel
+
+    box = DroneDynamics(noise_std=0.0, max_speed=1.5)
+    disc = DroneDynamics(noise_std=0.0, max_speed=1.5, command_set="disc")
+    assert np.linalg.norm(settle(box, [1, 1])) == pytest.approx(1.5 * np.sqrt(2), rel=1e-5)
+    np.testing.assert_allclose(settle(disc, [1, 1]), [1.5 / np.sqrt(2)] * 2, rtol=1e-5)
+    np.testing.assert_allclose(settle(disc, [-1, 0]), [-1.5, 0.0], atol=1e-5)
+    np.testing.assert_allclose(settle(disc, [3, -4]), [1.5 * 0.6, -1.5 * 0.8], rtol=1e-5)
+    np.testing.assert_allclose(settle(disc, [0.3, -0.2]), settle(box, [0.3, -0.2]))
+    # bound() is the applied command, the same in numpy and torch.
+    cmd = np.random.default_rng(0).uniform(-2, 2, size=(50, 2))
+    bounded = disc.bound(cmd)
+    assert (np.linalg.norm(bounded, axis=-1) <= 1 + 1e-12).all()
+    np.testing.assert_allclose(disc.bound(torch.as_tensor(cmd)).numpy(), bounded)
+    np.testing.assert_array_equal(box.bound(cmd), np.clip(cmd, -1, 1))
+    with pytest.raises(ValueError, match="command_set must be one of"):
+        DroneDynamics(command_set="circle")
+
+
 def test_noise_is_seeded_and_scaled():
     def hover(seed):
         env = arena([[5.0, 2.0], [5.0, 8.9]], constrained=False, max_steps=2000)
@@ -378,6 +406,20 @@ def test_demonstrations_reach_doors_without_violation(demos):
     basis = CellOccupancyCostBasis()
     cost = basis(demos.states) @ basis.true_weights()  # numpy in, read-only
     assert float(cost.max()) == 0.0
+
+
+def test_demonstrations_fly_in_the_given_dynamics():
+    """The planner flies its pairs in the learners' dynamics: under the disc every
+    recorded command is one the disc flies unchanged, and replaying it in the same
+    dynamics gives the recorded states."""
+    disc = DroneDynamics(command_set="disc", max_speed=1.5)
+    pairs = make_drone_demonstrations(3, rng=np.random.default_rng(1), dynamics=disc)
+    norms = np.linalg.norm(pairs.actions, axis=-1)
+    assert norms.max() <= 1 + 1e-12 and norms.max() > 0.5
+    for k in range(pairs.n_pairs):
+        states, env = replay_pair(pairs, k, dynamics=disc)
+        np.testing.assert_array_equal(states, pairs.states[k, :pairs.lengths[k] + 1])
+        assert env.reached.all() and not env.violated.any()
 
 
 def test_demonstrations_are_seeded_and_varied(demos):

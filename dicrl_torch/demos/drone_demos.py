@@ -454,7 +454,8 @@ def track(path: TimedPath, t: float, state: np.ndarray, dynamics: DroneDynamics)
         dynamics: the drone dynamics (for ``tau`` and ``max_speed``).
     """
     v = path.velocity(t + dynamics.tau) + KP * (path.position(t) - state[:2])
-    return np.clip(v / dynamics.max_speed, -1.0, 1.0)
+    # The command as the dynamics fly it, so a demonstrated action is the one applied.
+    return dynamics.bound(v / dynamics.max_speed)
 
 
 def fly_pair(

@@ -24,10 +24,11 @@ any demonstration. The block is aligned to the 1 m grid, so "cells overlapping a
 obstacle" (the true cost constraints of the cell basis) are exactly the cells inside it.
 
 Dynamics of each drone (fixed altitude, planar): the action is a velocity command
-``u ∈ [-1, 1]^2`` (times ``max_speed``), tracked with a first-order response plus
-Gaussian noise drawn from the env's seeded generator::
+``u ∈ [-1, 1]^2``, bounded per axis (``command_set="box"``, the default) or in norm
+(``"disc"``: ``u`` scaled back to ``|u| <= 1``), times ``max_speed``, tracked with a
+first-order response plus Gaussian noise drawn from the env's seeded generator::
 
-    v' = clip(v + (dt / tau) (max_speed * u - v) + noise, ±vel_limit)
+    v' = clip(v + (dt / tau) (max_speed * bound(u) - v) + noise, ±vel_limit)
     p' = clip(p + dt * v', room);  v' = 0 along an axis on which a wall stopped it
 
 The walls are part of the dynamics, known to every learner like the grid world's edge
@@ -46,6 +47,7 @@ numpy arrays and torch tensors with any leading batch shape, so a solver can bat
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -199,17 +201,29 @@ class DroneDynamics:
         dt: time step in seconds.
         tau: time constant of the velocity response in seconds; ``dt <= tau`` so the
             Euler update does not overshoot.
-        max_speed: speed per axis (m/s) commanded by ``u = ±1``.
+        max_speed: commanded speed (m/s) of ``|u| = 1``: per axis for ``"box"``, in
+            norm for ``"disc"``.
         noise_std: standard deviation (m/s) of the Gaussian velocity noise per step.
         vel_limit: hard bound on each velocity component (m/s); default
             ``1.5 * max_speed`` (noise can push slightly past the commanded speed).
+        command_set: ``"box"``: each component of ``u`` clipped to ``[-1, 1]``, so the
+            fastest flight is along a diagonal (``sqrt 2 * max_speed``); ``"disc"``:
+            ``u`` scaled back to ``|u| <= 1``, the same top speed in every direction.
+            Why the disc exists: under the box, the velocity that gains most on a door
+            is a corner of the box, so a reward-seeking policy flies 45° lines where
+            the experts fly straight to their doors, and ICRL explains the difference
+            with constraints on the cells of the 45° routes (docs/drones.md, "Routes
+            at 45°").
     """
+
+    COMMAND_SETS = ("box", "disc")
 
     dt: float = 0.1
     tau: float = 0.3
     max_speed: float = 1.0
     noise_std: float = 0.02
     vel_limit: float | None = None
+    command_set: str = "box"
 
     def __post_init__(self) -> None:
         for name in ("dt", "tau", "max_speed"):
@@ -218,6 +232,9 @@ class DroneDynamics:
                 or self.noise_std < 0:
             raise ValueError(f"noise_std must be a finite number >= 0, got {self.noise_std!r}.")
         object.__setattr__(self, "noise_std", float(self.noise_std))
+        if self.command_set not in self.COMMAND_SETS:
+            raise ValueError(f"command_set must be one of {self.COMMAND_SETS}, got "
+                             f"{self.command_set!r}.")
         if self.dt > self.tau:
             raise ValueError(
                 f"dt={self.dt} exceeds tau={self.tau}: the first-order update would "
@@ -238,7 +255,7 @@ class DroneDynamics:
         Args:
             pos: ``[..., 2]`` positions (m).
             vel: ``[..., 2]`` velocities (m/s).
-            command: ``[..., 2]`` velocity commands, clipped to ``[-1, 1]``.
+            command: ``[..., 2]`` velocity commands, bounded by :meth:`bound`.
             noise: ``[..., 2]`` velocity noise (m/s) already scaled, e.g.
                 ``noise_std * rng.standard_normal(...)``; None for none.
 
@@ -246,7 +263,7 @@ class DroneDynamics:
             ``(pos', vel')``, each ``[..., 2]``; a wall stops a drone: its position is
             clamped to the room and its velocity along that axis set to 0.
         """
-        u = _clip(command, -1.0, 1.0) * self.max_speed
+        u = self.bound(command) * self.max_speed
         vel = vel + (self.dt / self.tau) * (u - vel)
         if noise is not None:
             vel = vel + noise
@@ -255,6 +272,15 @@ class DroneDynamics:
         pos = _clip(free, 0.0, ROOM_SIZE)
         vel = _where(pos == free, vel, vel * 0.0)
         return pos, vel
+
+    def bound(self, command: Any) -> Any:
+        """``[..., 2]`` the commands as flown (numpy or torch): for ``"box"`` clipped to
+        ``[-1, 1]`` per component, for ``"disc"`` scaled back to unit norm where longer
+        (the direction kept)."""
+        if self.command_set == "box":
+            return _clip(command, -1.0, 1.0)
+        norm = (command * command).sum(-1, keepdims=True) ** 0.5
+        return command / _clip(norm, 1.0, math.inf)
 
     def sample_noise(self, rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
         """``shape`` float64 velocity noise from ``rng``."""

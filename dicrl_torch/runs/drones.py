@@ -47,6 +47,9 @@ class DroneTask(SACTask):
         split: demonstrated pairs per learner.
         seed: seeds the demonstrations, the clones and the evaluation.
         final_score: the last solve's score (``"learned_success"`` here).
+        dynamics: the arena's :class:`~dicrl_torch.envs.drones.DroneDynamics`, the
+            solver's env's; the planner flies the demonstrations in it (default: the
+            default dynamics).
         **settings: the rest of :class:`~dicrl_torch.runs.continuous.SACTask`'s
             (``eval_episodes``, ``eval_action``, ``timesteps``, ``n_eval_episodes``,
             ``warmup_timesteps``, ``η(0)``, ``ω_c(0)``, the last solve, ``threshold``,
@@ -56,11 +59,12 @@ class DroneTask(SACTask):
     game = "drones"
 
     def __init__(self, *, solver, reward_basis, cost_basis, split: Sequence[int], seed: int,
-                 final_score: str = "learned_success", **settings) -> None:
-        # The planner flies its pairs in the default arena (30 s): a shorter learner
-        # episode limit must not make it fail.
+                 final_score: str = "learned_success", dynamics=None, **settings) -> None:
+        # The planner flies its pairs with the learners' dynamics, for the arena's
+        # default 30 s: a shorter learner episode limit must not make it fail.
         self.drone_demos = make_drone_demonstrations(
-            sum(int(m) for m in split), rng=np.random.default_rng(int(seed)))
+            sum(int(m) for m in split), rng=np.random.default_rng(int(seed)),
+            dynamics=dynamics)
         super().__init__(solver=solver, demos=self.drone_demos, split=split, seed=seed,
                          true_constraints=cost_basis.true_constraints().numpy(),
                          final_score=final_score, start_states=start_support(), **settings)
