@@ -186,7 +186,7 @@ def test_disc_commands_bound_the_speed_in_every_direction():
     inside the unit disc fly as under the box."""
     def settle(dyn, u):
         pos, vel = np.full(2, 5.0), np.zeros(2)
-        for _ in range(40):  # 13 time constants; no wall within 6 m of travel
+        for _ in range(40):  # 13 time constants, the drone held in the middle (no wall)
             pos, vel = dyn.step(pos, vel, np.asarray(u, dtype=float))
             pos = np.full(2, 5.0)
         return vel
