@@ -5,9 +5,10 @@
 
 Reads every ``results.json`` below the given directory (one per run) and prints, for
 each method row of the table (``D-ICRL 1`` … ``Experts (nominal)``), the mean ± std
-across runs of CR (the per-run mean), FPR, FNR, FNR_required, CVR and RFD (null where a run
-lacks a value, e.g. older runs without FNR_required); writes the same numbers to
-``summary.json`` in that directory. Runs of different experiments are refused.
+across runs of CR (the per-run mean), SR, FPR, FNR, FNR_required, CVR and RFD (null where a
+run lacks a value, e.g. SR on the grid or older runs without FNR_required; a column null in
+every row is not printed); writes the same numbers to ``summary.json`` in that directory.
+Runs of different experiments are refused.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import math
 import sys
 from pathlib import Path
 
-METRICS = ("CR_mean", "FPR", "FNR", "FNR_required", "CVR", "RFD")
+METRICS = ("CR_mean", "SR", "FPR", "FNR", "FNR_required", "CVR", "RFD")
 
 
 def load_runs(root: Path) -> list[dict]:
@@ -77,9 +78,11 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(f"error: {e}")
     table = summarize(runs)
     print(f"{runs[0]['experiment']}: mean ± std over {len(runs)} runs")
-    print(f"{'':24s}" + "".join(f"{k.removesuffix('_mean'):>18s}" for k in METRICS))
+    shown = [k for k in METRICS if any(cols[k] is not None for cols in table.values())]
+    print(f"{'':24s}" + "".join(f"{k.removesuffix('_mean'):>18s}" for k in shown))
     for label, cols in table.items():
-        cells = ["N/A" if v is None else f"{v[0]:.3f} ± {v[1]:.3f}" for v in cols.values()]
+        cells = ["N/A" if cols[k] is None else f"{cols[k][0]:.3f} ± {cols[k][1]:.3f}"
+                 for k in shown]
         print(f"{label:24s}" + "".join(f"{c:>18s}" for c in cells))
     (args.root / "summary.json").write_text(json.dumps(
         {"runs": [r["path"] for r in runs], "rows": table}, indent=1))

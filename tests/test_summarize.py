@@ -32,7 +32,24 @@ def test_mean_and_sample_std_per_row(tmp_path, capsys):
     assert mean == 12.0 and math.isclose(std, math.sqrt(8.0))
     assert out["Experts (ground truth)"]["FPR"] is None
     assert out["D-ICRL 1"]["FNR_required"] is None  # these runs predate the column
-    assert "12.000 ± 2.828" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "12.000 ± 2.828" in printed
+    assert "SR" not in printed.splitlines()[1]  # a column no row has is not printed
+
+
+def test_drone_rows_get_success_rate(tmp_path, capsys):
+    for seed, sr in ((0, 1.0), (1, 0.5)):
+        d = tmp_path / f"seed={seed}"
+        d.mkdir()
+        row = {"SR": sr, "CVR": 1 - sr, "FPR": 0.0, "FNR": 0.0}
+        (d / "results.json").write_text(json.dumps(
+            {"experiment": "table2", "methods": {"C-ICRL": {"learners": [row]}}}))
+    summarize.main([str(tmp_path)])
+    out = json.loads((tmp_path / "summary.json").read_text())["rows"]
+    assert out["C-ICRL"]["SR"] == [0.75, math.sqrt(0.125)]
+    assert out["C-ICRL"]["CR_mean"] is None
+    header = capsys.readouterr().out.splitlines()[1].split()
+    assert header == ["SR", "FPR", "FNR", "CVR"]
 
 
 def test_mixed_experiments_and_empty_directories_are_refused(tmp_path):
