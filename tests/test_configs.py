@@ -3,7 +3,6 @@ goes nowhere); the demo entry point runs end to end."""
 
 from __future__ import annotations
 
-import functools
 import json
 import shutil
 import subprocess
@@ -16,11 +15,10 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from tiny_train import TINY, TRAIN, comparable, run_train
 
-from dicrl_torch.envs.drones import JointDroneEnv
-
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
-
+sys.path.insert(0, str(ROOT / "experiments"))
+from common import drone_env_factory  # noqa: E402
 
 # What marks an option of a continuous game in its YAML (a drone, continuous or MPE
 # basis, an arena, the SAC solver, the SAC tasks' greedy row); every other option is the
@@ -73,10 +71,9 @@ def test_every_drone_target_instantiates(cost, reward):
         cfg = compose(config_name="train", overrides=[
             "experiment=table2_quick", f"features/cost={cost}", f"features/reward={reward}"])
     rb, cb = instantiate(cfg.features.reward), instantiate(cfg.features.cost)
+    cfg.env.arena.max_steps = 5
     solver = build(cfg.solver.solver, reward_basis=rb, cost_basis=cb, seed=0,
-                   env_factory=functools.partial(JointDroneEnv, **{
-                       **cfg.env.arena, "max_steps": 5,
-                       "dynamics": instantiate(cfg.env.arena.dynamics)}))
+                   env_factory=drone_env_factory(cfg))  # the runs' own factory
     sol = solver.solve([0.0] * rb.dim + [-1.0], [0.0] * cb.dim, 0, n_eval_episodes=1)
     assert sol.mu_r.shape == (rb.dim,) and sol.mu_c.shape == (cb.dim,)
     if callable(getattr(cb, "true_constraints", None)):  # a network basis has no truth
