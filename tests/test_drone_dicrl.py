@@ -228,17 +228,18 @@ def test_table2_entry_point_end_to_end(tmp_path):
 @pytest.fixture(scope="module")
 def table2_quick_seed_0(tmp_path_factory):
     """``experiment=table2_quick`` as shipped, seed 0: ``(run dir, results, stdout)``.
-    750 s alone on 2 cores, 804-916 s beside another job (docs/drones.md)."""
+    750 s alone on a fast 2-core machine (6 scored chunks then), 1,900-2,200 s beside another
+    job on a slow one (docs/drones.md); the timeouts leave room for the slow one."""
     out_dir = tmp_path_factory.mktemp("table2_quick")
     out = subprocess.run([sys.executable, str(TRAIN), f"hydra.run.dir={out_dir}",
                           "experiment=table2_quick", "seed=0"],
-                         capture_output=True, text=True, cwd=ROOT, timeout=2400)
+                         capture_output=True, text=True, cwd=ROOT, timeout=3000)
     assert out.returncode == 0, out.stderr[-3000:]
     return out_dir, json.loads((out_dir / "results.json").read_text()), out.stdout
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(2700)
+@pytest.mark.timeout(3300)
 def test_table2_quick_runs_at_full_scale(table2_quick_seed_0):
     """Every row, figure and history entry of the shipped quick run."""
     out_dir, res, stdout = table2_quick_seed_0
@@ -258,12 +259,12 @@ def test_table2_quick_runs_at_full_scale(table2_quick_seed_0):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(2700)
-@pytest.mark.xfail(strict=True, reason="issue 26, open: at seed 0 learner 2's last solve "
-                   "keeps a policy with SR 0.50, CVR 0.500 (docs/drones.md, 2026-12-04). "
-                   "Remove this marker when the target holds.")
+@pytest.mark.timeout(3300)
 def test_table2_quick_meets_the_quick_targets_at_seed_0(table2_quick_seed_0):
-    """Issue 26's targets for the quick config: every D-learner SR >= 0.8, CVR <= 0.15."""
+    """Issue 26's targets for the quick config: every D-learner SR >= 0.8, CVR <= 0.15
+    (seed 0 gave SR 1.00 and CVR 0.000 for both, and the exact set; docs/drones.md). SAC's
+    numbers differ between CPUs, so another machine may land elsewhere: the README says
+    which figures a user can expect."""
     _, res, _ = table2_quick_seed_0
     for row in res["methods"]["D-ICRL"]["learners"]:
         assert row["SR"] >= 0.8 and row["CVR"] <= 0.15, (row["SR"], row["CVR"])
