@@ -214,7 +214,8 @@ class DroneDynamics:
             the experts fly straight to their doors, and ICRL may explain the
             difference with constraints on cells of the 45° routes. Measured on
             ``table2_quick`` seeds 0-2 it gave more exact sets but no wider margins
-            (docs/drones.md, "Routes at 45°"); the default stays the box.
+            (docs/drones.md, "Routes at 45°"); ``table2_quick`` flies it, the class
+            default and ``table2`` keep the box until ``table2`` is measured with it.
     """
 
     COMMAND_SETS = ("box", "disc")
