@@ -5,6 +5,7 @@
     .venv/bin/python experiments/resolve_study.py prune RUN_DIR [--methods D-ICRL,C-ICRL]
     # The last solve of one learner again, with solver settings changed for it only.
     .venv/bin/python experiments/resolve_study.py last-solve RUN_DIR D-ICRL 0 demo_value_bound=true
+    .venv/bin/python experiments/resolve_study.py last-solve RUN_DIR C-ICRL 0 final_margin=0.2
 
 RUN_DIR is a Hydra run directory of ``experiments/train.py`` (its ``.hydra/config.yaml`` and
 ``checkpoint.pt``). The trainers are rebuilt from the config and loaded from the end of
@@ -29,7 +30,8 @@ from dicrl_torch.comm import SimulatedCommunicator
 from dicrl_torch.runs.checkpoints import Checkpoints
 from dicrl_torch.runs.runner import make_trainer
 
-SETTINGS = {"demo_bc": float, "demo_value_bound": lambda v: {"true": True, "false": False}[v]}
+SETTINGS = {"demo_bc": float, "demo_value_bound": lambda v: {"true": True, "false": False}[v],
+            "final_margin": float}
 
 
 def load(run: Path, method: str):
@@ -78,9 +80,18 @@ def prune(run: Path, methods: list[str], threshold: float = 0.5) -> None:
 def last_solve(run: Path, method: str, learner: int, settings: dict) -> None:
     task, trainer = load(run, method)
     solver = trainer.learner_model.inner_solver(learner)
-    for key, value in settings.items():  # the solver's and its SB3 model's copy
-        setattr(solver, key, value)
-        setattr(solver.model, key, value)
+    for key, value in settings.items():
+        if key == "final_margin":
+            task.final["margin"] = value
+            task.penalty_basis = task.cost_basis.dilated(value) if value else None
+        else:  # the solver's and its SB3 model's copy
+            setattr(solver, key, value)
+            setattr(solver.model, key, value)
+    # A checkpoint saved before the buffer kept the demonstrations' states: give them again
+    # (the same episodes; only the states are new).
+    shard = task.shards[learner] if method == "D-ICRL" else task.demos
+    if solver.demo_fraction > 0:
+        solver.set_demonstrations(shard)
     t0 = time.perf_counter()
     row = task.evaluate_learner(trainer, learner, progress=False)
     print(json.dumps({
@@ -114,8 +125,8 @@ def main(argv: list[str] | None = None) -> None:
         try:
             settings[key] = SETTINGS[key](value)
         except (KeyError, ValueError):
-            parser.error(f"{item!r}: give a number for demo_bc, true/false for "
-                         f"demo_value_bound.")
+            parser.error(f"{item!r}: give a number for demo_bc and final_margin (metres), "
+                         f"true/false for demo_value_bound.")
     last_solve(args.run, args.method, args.learner, settings)
 
 

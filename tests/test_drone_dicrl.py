@@ -188,9 +188,20 @@ def test_table2_config_is_checked():
                        ("solver.final_checks=20000", "exceeds solver.final_timesteps"),
                        ("solver.final_restarts=0", "solver.final_restarts=0 is invalid"),
                        ("solver.final_score=best", "'penalised_return' or 'learned_success'"),
+                       ("solver.final_margin=0.5", "metres the last solve's penalty cells"),
                        ("+solver.solver.ent_coeff=1", "did you mean 'ent_coef'")]:
         with pytest.raises(config_checks.ConfigError, match=match):
             config_checks.check_config(_compose(bad))
+
+
+def test_a_margin_needs_a_cost_basis_that_can_grow():
+    """final_margin grows the cost basis's cells: a basis without dilated() (the RBF
+    bumps) is refused when the task is built, naming the fix."""
+    from common import drone_task
+
+    assert drone_task(_compose("solver.final_margin=0.2")).penalty_basis.margin == 0.2
+    with pytest.raises(ValueError, match="set final_margin=0"):
+        drone_task(_compose("features/cost=rbf", "solver.final_margin=0.2"))
 
 
 TINY = ["experiment=table2_quick", "env.arena.max_steps=20", "eval_episodes=2",

@@ -571,3 +571,112 @@ def test_success_under_constraints_counts_each_drones_own_features():
     assert sol.success_rate_under(mask) == 4 / 8
     with pytest.raises(ValueError, match="constraints must be"):
         sol.success_rate_under(np.zeros(5, dtype=bool))
+
+
+# ------------------------------------------------------------ penalty with a margin
+def test_grown_cells_fire_within_the_margin_of_each_cell():
+    """CellOccupancyCostBasis.dilated(δ): a drone counts in cell (ix, iy) exactly when it
+    lies in the cell's square grown by δ on every side (brute force over the 100 cells),
+    the proximity fires below radius + δ, and δ = 0 is the plain one-hot."""
+    rng = np.random.default_rng(0)
+    states = np.zeros((500, 2, 4))
+    states[..., :2] = rng.uniform(0, 9.9, (500, 2, 2))  # inside the room
+    states[:100, :, :2] = np.round(states[:100, :, :2], 1)  # on and near cell edges
+    plain, margin = CellOccupancyCostBasis(), 0.25  # no position lies δ from an edge
+    grown = plain.dilated(margin)
+    phi, phi_grown = plain(states).numpy(), grown(states).numpy()
+    for i in range(2):
+        x, y = states[:, i, 0, None], states[:, i, 1, None]
+        cells = np.arange(100)
+        ix, iy = cells % 10, cells // 10
+        inside = (x >= ix) & (x < ix + 1) & (y >= iy) & (y < iy + 1)
+        near = ((x >= ix - margin) & (x < ix + 1 + margin)
+                & (y >= iy - margin) & (y < iy + 1 + margin))
+        np.testing.assert_array_equal(phi[:, 100 * i:100 * (i + 1)], inside)
+        np.testing.assert_array_equal(phi_grown[:, 100 * i:100 * (i + 1)], near)
+    gap = np.linalg.norm(states[:, 0, :2] - states[:, 1, :2], axis=-1)
+    np.testing.assert_array_equal(phi_grown[:, -1], gap < plain.proximity_radius + margin)
+    assert (phi_grown.sum(-1) > phi.sum(-1)).any()
+    np.testing.assert_array_equal(CellOccupancyCostBasis(margin=0.0)(states), phi)
+    for bad in (-0.1, 0.5, float("nan")):
+        with pytest.raises(ValueError, match="margin must lie in"):
+            plain.dilated(bad)
+
+
+def test_a_penalty_basis_relabels_stored_and_demonstrated_transitions(demos):
+    """With a penalty basis set, the cost part of every sampled reward is λ ω_c · φ of
+    that basis at the transition's next state (env rows and demonstrated rows alike);
+    set back to None, the stored features again."""
+    solver = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25)
+    rng = np.random.default_rng(4)
+    solver.solve(*random_weights(rng), 200, n_eval_episodes=1)
+    solver.set_demonstrations(demos)
+    buf, grown = solver.replay_buffer, CellOccupancyCostBasis().dilated(0.3)
+    eta, wc = random_weights(rng)
+    solver.set_weights(eta, wc)
+    buf.set_penalty_basis(grown)
+    np.random.seed(1)  # noqa: NPY002 (SB3's sampling stream; deterministic test)
+    batch = buf.sample(400)
+    b, e = buf.last_sample_indices
+    phi_r = buf.reward_features[b, e].astype(np.float64)
+    phi_grown = grown(buf.next_states[b, e]).numpy()
+    expect = buf.reward_scale[b, e] * (phi_r @ eta[:-1] + eta[-1] * (phi_grown @ wc))
+    np.testing.assert_allclose(batch.rewards[:300, 0].numpy(), expect, rtol=1e-5, atol=1e-4)
+    assert not np.allclose(expect, hand_rewards(buf, b, e, eta, wc))  # the margin counts
+    grown_solver = copy.copy(solver)
+    grown_solver.cost_basis = grown  # the demonstrated rows' rewards, from the pairs
+    table = demo_transition_table(demos, grown_solver, eta, wc)
+    for i in range(300, 400):
+        key = (batch.observations[i].numpy().tobytes()
+               + batch.next_observations[i].numpy().tobytes())
+        assert float(batch.rewards[i, 0]) == pytest.approx(table[key][0], rel=1e-5, abs=1e-4)
+    buf.set_penalty_basis(None)
+    buf.sample(64)
+    b, e = buf.last_sample_indices
+    np.testing.assert_array_equal(buf.compute_rewards(b, e), hand_rewards(buf, b, e, eta, wc))
+    with pytest.raises(ValueError, match="penalty_basis has 4 features"):
+        buf.set_penalty_basis(DoorLocationRewardBasis())
+
+
+def test_solve_keeping_best_trains_on_the_penalty_basis_for_that_solve_only():
+    """The last solve with a penalty basis: the chunks train on it (another policy than
+    without), the scores keep the cost basis, and the buffer is back on φ_c after."""
+    eta, wc = random_weights(np.random.default_rng(4))
+    grown = CellOccupancyCostBasis().dilated(0.4)
+    with_margin, plain = make_solver(seed=6, learning_starts=50), make_solver(seed=6,
+                                                                              learning_starts=50)
+    seen = []
+    original = with_margin.replay_buffer._penalty_features
+
+    def spy(*args):
+        seen.append(with_margin.replay_buffer.penalty_basis)
+        return original(*args)
+
+    with_margin.replay_buffer._penalty_features = spy
+    a = with_margin.solve_keeping_best(eta, wc, 200, checks=2, n_eval_episodes=2,
+                                       penalty_basis=grown)
+    b = plain.solve_keeping_best(eta, wc, 200, checks=2, n_eval_episodes=2)
+    assert seen and all(basis is grown for basis in seen)
+    assert with_margin.replay_buffer.penalty_basis is None
+    assert a.cost_sums.shape == b.cost_sums.shape  # estimates in the cost basis
+    differ = [not torch.equal(x, y) for x, y in zip(with_margin.model.policy.state_dict().values(),
+                                                      plain.model.policy.state_dict().values(),
+                                                      strict=True)]
+    assert any(differ)
+
+
+def test_buffer_state_without_demonstrated_states_loads_and_refuses_a_margin(demos):
+    """A state saved before the demonstrations' next states were kept still loads; a
+    penalty basis then asks for the demonstrations again (naming the fix)."""
+    solver = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25)
+    solver.solve(*random_weights(np.random.default_rng(4)), 100, n_eval_episodes=1)
+    solver.set_demonstrations(demos)
+    sd = solver.replay_buffer.state_dict()
+    assert "next_states" in sd["demo"]
+    del sd["demo"]["next_states"]
+    twin = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25)
+    twin.replay_buffer.load_state_dict(sd)
+    with pytest.raises(ValueError, match="call set_demonstrations again"):
+        twin.replay_buffer.set_penalty_basis(CellOccupancyCostBasis().dilated(0.2))
+    twin.set_demonstrations(demos)
+    twin.replay_buffer.set_penalty_basis(CellOccupancyCostBasis().dilated(0.2))

@@ -86,14 +86,27 @@ class CellOccupancyCostBasis(DroneFeatureBasis):
     border cell); the last feature is 1 when the drones are closer than
     ``proximity_radius``. ``l = 201``, values in ``{0, 1}``, ``max_value = 1``.
 
+    With ``margin`` δ > 0 (:meth:`dilated`) every feature fires within δ of where it
+    fires without: a drone counts in each cell whose square grown by δ on every side holds
+    it (up to 4 cells near a corner), and the proximity fires below ``proximity_radius +
+    δ``. That basis is not a model of the constraints; it is the penalty that a last solve
+    can train on so that the deployed policy keeps δ clear of its learned cells
+    (docs/drones.md, "A margin round the learned cells").
+
     Args:
         proximity_radius: distance (m) below which the proximity feature fires; the
             env's collision radius by default.
+        margin: δ in metres, in ``[0, CELL_SIZE / 2)``; 0: the exact cells.
     """
 
-    def __init__(self, proximity_radius: float = PROXIMITY_RADIUS) -> None:
+    def __init__(self, proximity_radius: float = PROXIMITY_RADIUS, margin: float = 0.0) -> None:
         super().__init__()
         self.proximity_radius = check_positive("proximity_radius", proximity_radius)
+        margin = float(margin)
+        if not 0.0 <= margin < CELL_SIZE / 2:
+            raise ValueError(f"margin must lie in [0, {CELL_SIZE / 2}) metres (half a cell), "
+                             f"got {margin!r}.")
+        self.margin = margin
         G = GRID_CELLS
         self.names = [f"drone{i}/cell({c % G},{c // G})" for i in range(N_DRONES)
                       for c in range(G * G)] + ["proximity"]
@@ -101,15 +114,26 @@ class CellOccupancyCostBasis(DroneFeatureBasis):
         # A buffer only to follow .to(device); it carries no state worth saving.
         self.register_buffer("_offsets", torch.arange(N_DRONES) * G * G, persistent=False)
 
+    def dilated(self, margin: float) -> CellOccupancyCostBasis:
+        """The same features grown by ``margin`` metres (class docstring)."""
+        return CellOccupancyCostBasis(self.proximity_radius, margin=margin)
+
     def compute(self, states: torch.Tensor) -> torch.Tensor:
         G = GRID_CELLS
         pos = states[..., :2]
-        ixy = torch.floor(pos / CELL_SIZE).clamp(0, G - 1).long()  # [..., 2, 2]
-        cell = ixy[..., 1] * G + ixy[..., 0] + self._offsets  # [..., 2] in the whole block
         onehot = torch.zeros((*states.shape[:-2], N_DRONES * G * G), dtype=states.dtype,
                              device=states.device)
-        onehot.scatter_(-1, cell, 1.0)
-        return torch.cat([onehot, _proximity_indicator(pos, self.proximity_radius)], -1)
+        # The cells of the lowest and the highest corner of the δ-square round each drone
+        # (the same cell when δ = 0), then the four combinations of their x and y.
+        lo = torch.floor((pos - self.margin) / CELL_SIZE).clamp(0, G - 1).long()  # [..., 2, 2]
+        hi = lo if self.margin == 0 else \
+            torch.floor((pos + self.margin) / CELL_SIZE).clamp(0, G - 1).long()
+        corners = [(lo, lo)] if self.margin == 0 else [(lo, lo), (hi, lo), (lo, hi), (hi, hi)]
+        for x_of, y_of in corners:
+            ix, iy = x_of[..., 0], y_of[..., 1]
+            onehot.scatter_(-1, iy * G + ix + self._offsets, 1.0)  # [..., 2] cells
+        proximity = _proximity_indicator(pos, self.proximity_radius + self.margin)
+        return torch.cat([onehot, proximity], -1)
 
     def true_constraints(self) -> torch.Tensor:
         """``[201]`` bool: for each drone the cells overlapping an obstacle, and the

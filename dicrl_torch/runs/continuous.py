@@ -85,6 +85,10 @@ class SACTask:
         final_timesteps, final_checks, final_restarts, final_score: the last solve on
             each learned ``(η̄, ω_c)``
             (:meth:`~dicrl_torch.solvers.sac.SACConstrainedSolver.solve_keeping_best`).
+        final_margin: the last solve trains on the penalty of the cost basis grown by
+            this many metres (its ``dilated(margin)``), so that the deployed policy keeps
+            clear of its learned constraints instead of grazing them; 0: the cost basis.
+            The learned constraints and the scores are the cost basis's either way.
         threshold: ``ω_c,j >= threshold`` marks a learned constraint.
         start_states: ``[P, N, d_s]`` joint states spanning the start distribution's
             support (:meth:`SACLearnerModel.start_features`); None: unknown.
@@ -109,7 +113,8 @@ class SACTask:
                  init_multiplier: float = -1.0, init_cost_weights: float = 0.0,
                  final_timesteps: int | None = None, final_checks: int = 1,
                  final_restarts: int = 1, final_score: str = "penalised_return",
-                 threshold: float = 0.5, start_states: Any = None, baseline: bool = False,
+                 final_margin: float = 0.0, threshold: float = 0.5, start_states: Any = None,
+                 baseline: bool = False,
                  baseline_penalty: float = 10.0, baseline_timesteps: int = 3000,
                  baseline_epsilon: float | None = None,
                  baseline_max_constraints: int | None = None) -> None:
@@ -157,7 +162,15 @@ class SACTask:
                              f"{final_score!r}.")
         self.final = dict(timesteps=check_int("final_timesteps", final_timesteps, checks),
                           checks=checks, restarts=check_int("final_restarts", final_restarts),
-                          score=str(final_score))
+                          score=str(final_score), margin=float(final_margin))
+        self.penalty_basis = None
+        if self.final["margin"] != 0.0:
+            if not callable(getattr(self.cost_basis, "dilated", None)):
+                raise ValueError(
+                    f"final_margin={final_margin!r} needs a cost basis that can be grown by a "
+                    f"margin (a dilated(margin) method, e.g. CellOccupancyCostBasis); "
+                    f"{type(self.cost_basis).__name__} has none: set final_margin=0.")
+            self.penalty_basis = self.cost_basis.dilated(self.final["margin"])
         self.threshold = check_finite("threshold", threshold)
         if not 0.0 < self.threshold <= 1.0:
             raise ValueError(f"threshold must lie in (0, 1], got {threshold!r}.")
@@ -291,7 +304,8 @@ class SACTask:
         kept = solver.solve_keeping_best(
             eta, cw, f["timesteps"], checks=f["checks"], restarts=f["restarts"],
             deterministic=self.eval_action == "mean",
-            constraints=mask if f["score"] == "learned_success" else None)
+            constraints=mask if f["score"] == "learned_success" else None,
+            penalty_basis=self.penalty_basis)
         row = self._evaluate_true_game(solver)
         row.update(self.rates(mask), multiplier=float(eta[-1]),
                    reward_weights=eta[:-1].tolist(), policy_timesteps=kept.timesteps,

@@ -128,6 +128,24 @@ class FeatureReplayBuffer(ReplayBuffer):
         self.last_demo_indices: np.ndarray | None = None
         """``[n_demo]``: the demonstrated transitions of the last :meth:`sample`'s last
         rows (None without any); their returns are computed only when asked for."""
+        self.penalty_basis: nn.Module | None = None
+        """Set by :meth:`set_penalty_basis`: the basis of the penalty's features, computed
+        from the stored next states at sampling (None: the stored ``φ_c``)."""
+
+    def set_penalty_basis(self, basis: nn.Module | None) -> None:
+        """Relabel the penalty ``λ ω_c · φ`` with ``φ = basis(next state)`` instead of the
+        stored ``φ_c`` (``l_c`` features, e.g. a cost basis grown by a margin), for every
+        transition, stored or demonstrated, until set back to None."""
+        if basis is not None:
+            if _basis_dim(basis, "penalty_basis") != self.l_c:
+                raise ValueError(f"penalty_basis has {basis.dim} features, the cost basis "
+                                 f"{self.l_c}; give the cost basis grown by a margin.")
+            if self._demo is not None and self._demo.get("next_states") is None:
+                raise ValueError(
+                    "The demonstrations in this buffer came from a state saved without their "
+                    "next states; call set_demonstrations again before set_penalty_basis.")
+        self.penalty_basis = basis
+        self._demo_returns = None
 
     def set_weights(self, reward_weights: Any, multiplier: Any, cost_weights: Any) -> None:
         """Set ``ω_r [l_r]``, ``λ`` and ``ω_c [l_c]``; every later sample uses them."""
@@ -166,8 +184,17 @@ class FeatureReplayBuffer(ReplayBuffer):
     def _stored_rewards(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
         """``[B, n_rewards]`` float64 rewards of stored transitions (see :meth:`_relabel`)."""
         return self._relabel(self.reward_features[batch_inds, env_indices],
-                             self.cost_features[batch_inds, env_indices],
+                             self._penalty_features(self.cost_features, self.next_states,
+                                                    (batch_inds, env_indices)),
                              self.reward_scale[batch_inds, env_indices])
+
+    def _penalty_features(self, stored: np.ndarray, next_states: np.ndarray,
+                          rows: Any) -> np.ndarray:
+        """``[B, l_c]``: the features of the penalty at ``rows`` of ``stored`` (the cost
+        features), or of :attr:`penalty_basis` at the same rows of ``next_states``."""
+        if self.penalty_basis is None:
+            return stored[rows]
+        return _features(self.penalty_basis, next_states[rows])
 
     def _relabel(self, phi_r: np.ndarray, phi_c: np.ndarray, scale: np.ndarray) -> np.ndarray:
         """``[B, n_rewards]`` float64 ``scale · (φ_r · ω_r + λ φ_c · ω_c)`` under the
@@ -240,6 +267,7 @@ class FeatureReplayBuffer(ReplayBuffer):
             "phi_r": _features(self.reward_basis, next_states),
             "phi_c": _features(self.cost_basis, next_states),
             "scale": np.where(terminal & self.absorbing, 1.0 / (1.0 - self.gamma), 1.0),
+            "next_states": np.asarray(next_states, dtype=np.float64),
         }
         self._demo_returns = None
         self.demo_fraction = fraction
@@ -263,7 +291,8 @@ class FeatureReplayBuffer(ReplayBuffer):
             raise RuntimeError("No demonstrations: call set_demonstrations first.")
         if self._demo_returns is None:
             d = self._demo
-            rewards = self._relabel(d["phi_r"], d["phi_c"], d["scale"])  # [n, G]
+            phi_c = self._penalty_features(d["phi_c"], d["next_states"], slice(None))
+            rewards = self._relabel(d["phi_r"], phi_c, d["scale"])  # [n, G]
             returns = np.empty_like(rewards)
             running = np.zeros(rewards.shape[1])
             # transitions lie in episode order, t ascending
@@ -293,7 +322,9 @@ class FeatureReplayBuffer(ReplayBuffer):
         self.last_demo_indices = idx
         demo = self._samples(
             d["obs"][idx], d["actions"][idx], d["next_obs"][idx], d["dones"][idx],
-            self._relabel(d["phi_r"][idx], d["phi_c"][idx], d["scale"][idx]), env)
+            self._relabel(d["phi_r"][idx],
+                          self._penalty_features(d["phi_c"], d["next_states"], idx),
+                          d["scale"][idx]), env)
         return ReplayBufferSamples(*(torch.cat(pair)
                                      for pair in zip(online[:5], demo[:5], strict=True)))
 
@@ -326,7 +357,9 @@ class FeatureReplayBuffer(ReplayBuffer):
                "timeouts", "next_states", "reward_features", "cost_features", "reward_scale")
     """The per-transition arrays (``[buffer_size, n_envs, ...]``)."""
     _FRESH = {"reward_scale": 1.0}  # what a new buffer holds in the rows not filled yet (else 0)
-    _DEMO = ("obs", "next_obs", "actions", "dones", "ends", "phi_r", "phi_c", "scale")
+    _DEMO = ("obs", "next_obs", "actions", "dones", "ends", "phi_r", "phi_c", "scale",
+             "next_states")
+    _DEMO_LATER = ("ends", "next_states")  # states saved before these were kept lack them
 
     def state_dict(self) -> dict[str, Any]:
         """What sampling and storing read, as tensors and plain values: the filled rows
@@ -343,7 +376,8 @@ class FeatureReplayBuffer(ReplayBuffer):
             "multiplier": self.multiplier,
             "cost_weights": optional_tensor(self.cost_weights),
             "demo_fraction": float(self.demo_fraction),
-            "demo": None if demo is None else {k: tensor_of(demo[k]) for k in self._DEMO},
+            "demo": None if demo is None else {k: tensor_of(demo[k]) for k in self._DEMO
+                                               if demo.get(k) is not None},
             "last_sample_indices": None if last is None else [tensor_of(a) for a in last],
         }
 
@@ -369,10 +403,11 @@ class FeatureReplayBuffer(ReplayBuffer):
             k = int(sd["demo"]["dones"].shape[0])
             mine = {"obs": (k, *self.obs_shape), "next_obs": (k, *self.obs_shape),
                     "actions": (k, self.action_dim), "dones": (k,), "phi_r": (k, self.l_r),
-                    "phi_c": (k, self.l_c), "scale": (k,), "ends": (k,)}
+                    "phi_c": (k, self.l_c), "scale": (k,), "ends": (k,),
+                    "next_states": (k, *self.state_shape)}
             for key, shape in mine.items():
-                if key == "ends" and key not in sd["demo"]:
-                    continue  # a state saved before it was kept: its dones are the ends
+                if key in self._DEMO_LATER and key not in sd["demo"]:
+                    continue  # a state saved before it was kept
                 check_tensor(f"replay buffer demonstrations {key!r}", sd["demo"][key], shape,
                              sd["demo"][key].dtype)
 
@@ -392,7 +427,8 @@ class FeatureReplayBuffer(ReplayBuffer):
         demo = sd["demo"]
         if demo is not None and "ends" not in demo:  # saved before "ends" was kept
             demo = {**demo, "ends": demo["dones"].bool()}
-        self._demo = None if demo is None else {k: array_of(demo[k]) for k in self._DEMO}
+        self._demo = None if demo is None else {
+            k: array_of(demo[k]) if k in demo else None for k in self._DEMO}
         self._demo_returns = None
         last = sd["last_sample_indices"]
         self.last_sample_indices = None if last is None else (array_of(last[0]),

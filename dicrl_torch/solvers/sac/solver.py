@@ -529,7 +529,8 @@ class SACConstrainedSolver:
 
     def solve_keeping_best(self, eta: Any, cost_weights: Any, timesteps: int, *, checks: int,
                            restarts: int = 1, n_eval_episodes: int | None = None,
-                           deterministic: bool = False, constraints: Any = None) -> SACSolution:
+                           deterministic: bool = False, constraints: Any = None,
+                           penalty_basis: Any = None) -> SACSolution:
         """Train ``timesteps`` in ``checks`` near-equal chunks and end with the networks
         whose policy scored the highest learned objective
         (:meth:`SACSolution.penalised_return`) after any chunk; with ``constraints``, the
@@ -554,6 +555,11 @@ class SACConstrainedSolver:
             deterministic: score the mean-action policy (how it is deployed).
             constraints: ``[l_c]`` bool, the learner's constraint set (e.g. its
                 ``ω_c ≥ 0.5``), or None.
+            penalty_basis: train on the penalty ``λ ω_c · φ`` with ``φ`` this basis's
+                features (``l_c`` of them, e.g. the cost basis grown by a margin:
+                ``CellOccupancyCostBasis.dilated``) for this solve only
+                (:meth:`FeatureReplayBuffer.set_penalty_basis`); the scores and the
+                returned estimates keep the cost basis. None: the cost basis.
 
         Returns:
             The best chunk's :class:`SACSolution` (its rollouts gave the score); this
@@ -574,6 +580,22 @@ class SACConstrainedSolver:
         # solver still has the state they start from; it runs last as restart 0.
         seeds = np.random.SeedSequence([self.seed, 4]).generate_state(restarts - 1)
         order = [*range(1, restarts), 0]
+        # Set before the clones copy the buffer; every later solve trains on φ_c again.
+        self.replay_buffer.set_penalty_basis(penalty_basis)
+        try:
+            best, best_state = self._keep_best(eta, cost_weights, chunks, seeds, order,
+                                               n_eval_episodes, deterministic, constraints)
+        finally:
+            self.replay_buffer.set_penalty_basis(None)
+        self.model.policy.load_state_dict(best_state)
+        # A clone's solution: its policy now lives here (the clone is closed).
+        return replace(best, solver=self)
+
+    def _keep_best(self, eta: Any, cost_weights: Any, chunks: np.ndarray, seeds: np.ndarray,
+                   order: list[int], n_eval_episodes: int | None, deterministic: bool,
+                   constraints: Any) -> tuple[SACSolution, dict[str, torch.Tensor]]:
+        """:meth:`solve_keeping_best`'s lineages: the best chunk's solution and policy
+        state (restarts in ``order``, 0 this solver, the others clones of ``seeds``)."""
         best, best_key, best_state = None, None, None
         self.last_checks = []
         for r in order:
@@ -595,9 +617,7 @@ class SACConstrainedSolver:
             if solver is not self:
                 solver.close()
         self.last_checks.sort(key=lambda c: c["restart"])  # stable: chunks stay in order
-        self.model.policy.load_state_dict(best_state)
-        # A clone's solution: its policy now lives here (the clone is closed).
-        return replace(best, solver=self)
+        return best, best_state
 
     def _train(self, eta: Any, cost_weights: Any, timesteps: int) -> None:
         """Set the weights (relabelling the buffer) and continue SAC for ``timesteps``."""
