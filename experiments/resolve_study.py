@@ -31,7 +31,7 @@ from dicrl_torch.runs.checkpoints import Checkpoints
 from dicrl_torch.runs.runner import make_trainer
 
 SETTINGS = {"demo_bc": float, "demo_value_bound": lambda v: {"true": True, "false": False}[v],
-            "final_margin": float}
+            "final_margin": float, "eval_policy": str}
 
 
 def load(run: Path, method: str):
@@ -84,6 +84,8 @@ def last_solve(run: Path, method: str, learner: int, settings: dict) -> None:
         if key == "final_margin":
             task.final["margin"] = value
             task.penalty_basis = task.cost_basis.dilated(value) if value else None
+        elif key == "eval_policy":  # "plan": no last solve, planning on the learned game
+            task.eval_policy = value
         else:  # the solver's and its SB3 model's copy
             setattr(solver, key, value)
             setattr(solver.model, key, value)
@@ -98,7 +100,7 @@ def last_solve(run: Path, method: str, learner: int, settings: dict) -> None:
         "method": method, "learner": learner + 1, "settings": settings, "SR": row["SR"],
         "CVR": row["CVR"], "SR_sampled": row["SR_sampled"], "kept": row["policy_timesteps"],
         "seconds": round(time.perf_counter() - t0),
-        "chunk_scores": [c["success_under_constraints"] for c in row["final_checks"]]}),
+        "chunk_scores": [c["success_under_constraints"] for c in row["final_checks"] or ()]}),
         flush=True)
 
 

@@ -22,8 +22,9 @@ from dicrl_torch.comm import CompleteSchedule, SimulatedCommunicator
 from dicrl_torch.comm.distributed import ALLOWED_FIELDS
 from dicrl_torch.demos import partition_demonstrations
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations
-from dicrl_torch.envs.drones import JointDroneEnv, start_support
+from dicrl_torch.envs.drones import JointDroneEnv, in_obstacle, start_support
 from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
+from dicrl_torch.runs.drones import PLANNER_DEFAULTS
 from dicrl_torch.solvers.sac import SACConstrainedSolver, discounted_demo_feature_sums
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -279,3 +280,23 @@ def test_table2_quick_meets_the_quick_targets_at_seed_0(table2_quick_seed_0):
     _, res, _ = table2_quick_seed_0
     for row in res["methods"]["D-ICRL"]["learners"]:
         assert row["SR"] >= 0.8 and row["CVR"] <= 0.15, (row["SR"], row["CVR"])
+
+
+def test_planning_on_the_true_game_flies_both_drones_round_the_block():
+    """A planner given the true constraints and a door-seeking reward (what a learner with
+    the exact set would hold) takes both drones to their doors in the true game, on the
+    evaluation's starts, without a violation; the grid values forbid the block."""
+    from common import drone_task
+
+    task = drone_task(_compose("eval_episodes=2", "solver.eval_policy=plan"))
+    truth = task.cost_basis.true_constraints().numpy()
+    eta = np.array([1.0, 1.0, 1.0, 1.0, -10.0])
+    row = task._evaluate_planned(task.base, eta, truth.astype(np.float64), truth, seed=0)
+    assert row["SR"] == 1.0 and row["CVR"] == 0.0 and row["SR_plan"] == 1.0
+    assert row["SR_mean"] is None  # no SAC policy was flown
+    for path in task._paths:
+        assert not np.asarray(in_obstacle(path[:, :, :2])).any()
+    values = task._grid_values(eta, truth.astype(np.float64), truth,
+                               {**PLANNER_DEFAULTS}, task.base.env_factory().arena.dynamics)
+    block = values[0][5 * 4 + 1, 4 * 4 + 1]  # a centre inside cell (4, 5)
+    assert block < -1e8 and values[0].max() > 0

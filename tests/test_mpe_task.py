@@ -424,3 +424,12 @@ def test_mpe_quick_meets_the_targets_at_seed_0(tmp_path):
     for row in rows:
         assert row["FPR"] <= 0.10 and row["FNR"] <= 0.10, row["constraints"]
         assert row["CVR"] <= 0.05 and row["SR"] >= 0.9 * experts, (row["CVR"], row["SR"])
+
+
+def test_planning_needs_a_game_with_a_model():
+    """eval_policy='plan' plans in the task's model of its nominal game; the spread's task
+    gives none, and says so when built."""
+    with pytest.raises(ValueError, match="needs a model of the nominal game"):
+        tiny_task(eval_policy="plan")
+    with pytest.raises(ValueError, match="eval_policy must be one of"):
+        tiny_task(eval_policy="search")

@@ -680,3 +680,30 @@ def test_buffer_state_without_demonstrated_states_loads_and_refuses_a_margin(dem
         twin.replay_buffer.set_penalty_basis(CellOccupancyCostBasis().dilated(0.2))
     twin.set_demonstrations(demos)
     twin.replay_buffer.set_penalty_basis(CellOccupancyCostBasis().dilated(0.2))
+
+
+def test_an_actor_drives_the_evaluation_as_the_policy_would():
+    """evaluate(actor=...) with an actor that returns the policy's mean actions from the
+    joint states it is given gives the rollouts of evaluate(deterministic=True); the
+    actor sees only the episodes still running and their flying agents."""
+    solver = make_solver(seed=8, learning_starts=50)
+    eta, wc = random_weights(np.random.default_rng(8))
+    solver.solve(eta, wc, 150, n_eval_episodes=1)
+    seen = []
+
+    def actor(states, active, episodes):
+        seen.append((states.shape, active.shape, tuple(episodes)))
+        return solver.act(joint_obs_from_states(states), deterministic=True)
+
+    for true_game in (False, True):
+        plain = solver.evaluate(3, deterministic=True, true_game=true_game,
+                                rng=np.random.default_rng(0), trajectories=True)
+        acted = solver.evaluate(3, true_game=true_game, rng=np.random.default_rng(0),
+                                trajectories=True, actor=actor)
+        for a, b in zip(plain.paths, acted.paths, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert torch.equal(plain.reached, acted.reached)
+        assert torch.equal(plain.violated, acted.violated)
+        torch.testing.assert_close(plain.reward_sums, acted.reward_sums)
+    assert seen[0] == ((3, 2, 4), (3, 2), (0, 1, 2))
+    assert all(len(eps) == n[0] == m[0] for n, m, eps in seen)

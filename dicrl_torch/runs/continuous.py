@@ -49,6 +49,9 @@ __all__ = ["EVAL_ACTIONS", "FINAL_SCORES", "GREEDY_BASELINE", "SACTask", "derive
            "feature_strip"]
 
 EVAL_ACTIONS: tuple[str, ...] = ("mean", "sampled")
+EVAL_POLICIES: tuple[str, ...] = ("sac", "plan")
+"""How a learner acts in the table's rollouts: the SAC policy of a last solve, or planning
+on its learned game with the nominal model (a task with :meth:`SACTask.make_planner`)."""
 FINAL_SCORES: tuple[str, ...] = ("penalised_return", "learned_success")
 GREEDY_BASELINE = "M(C)E-greedy"
 
@@ -89,6 +92,10 @@ class SACTask:
             this many metres (its ``dilated(margin)``), so that the deployed policy keeps
             clear of its learned constraints instead of grazing them; 0: the cost basis.
             The learned constraints and the scores are the cost basis's either way.
+        eval_policy: ``"sac"``: each row's policy is the SAC policy of a last solve;
+            ``"plan"``: no last solve, each learner acts by planning on its learned
+            ``(η̄, ω_c)`` in the nominal model (:meth:`make_planner`, the task's; the
+            drone arena has one), with ``planner`` its settings.
         threshold: ``ω_c,j >= threshold`` marks a learned constraint.
         start_states: ``[P, N, d_s]`` joint states spanning the start distribution's
             support (:meth:`SACLearnerModel.start_features`); None: unknown.
@@ -113,7 +120,8 @@ class SACTask:
                  init_multiplier: float = -1.0, init_cost_weights: float = 0.0,
                  final_timesteps: int | None = None, final_checks: int = 1,
                  final_restarts: int = 1, final_score: str = "penalised_return",
-                 final_margin: float = 0.0, threshold: float = 0.5, start_states: Any = None,
+                 final_margin: float = 0.0, eval_policy: str = "sac",
+                 planner: dict | None = None, threshold: float = 0.5, start_states: Any = None,
                  baseline: bool = False,
                  baseline_penalty: float = 10.0, baseline_timesteps: int = 3000,
                  baseline_epsilon: float | None = None,
@@ -171,6 +179,14 @@ class SACTask:
                     f"margin (a dilated(margin) method, e.g. CellOccupancyCostBasis); "
                     f"{type(self.cost_basis).__name__} has none: set final_margin=0.")
             self.penalty_basis = self.cost_basis.dilated(self.final["margin"])
+        if eval_policy not in EVAL_POLICIES:
+            raise ValueError(f"eval_policy must be one of {list(EVAL_POLICIES)}, got "
+                             f"{eval_policy!r}.")
+        if eval_policy == "plan" and type(self).make_planner is SACTask.make_planner:
+            raise ValueError(f"eval_policy='plan' needs a model of the nominal game to plan "
+                             f"in, which {type(self).__name__} does not give (the drone "
+                             f"arena does); use eval_policy='sac'.")
+        self.eval_policy, self.planner_settings = str(eval_policy), dict(planner or {})
         self.threshold = check_finite("threshold", threshold)
         if not 0.0 < self.threshold <= 1.0:
             raise ValueError(f"threshold must lie in (0, 1], got {threshold!r}.")
@@ -295,11 +311,51 @@ class SACTask:
         self._paths = paths[self.eval_action]
         return row
 
+    def make_planner(self, eta: np.ndarray, cost_weights: np.ndarray, constraints: np.ndarray,
+                     seed: int):
+        """A planner (:class:`~dicrl_torch.solvers.planning.CrossEntropyPlanner`) acting on
+        the learned game ``(η [l_r + 1], ω_c [l_c])`` with ``constraints [l_c]`` bool
+        forbidden, in the nominal model; a game with a model overrides this."""
+        raise NotImplementedError(f"{type(self).__name__} has no model to plan in.")
+
+    def _evaluate_planned(self, solver, eta: np.ndarray, cost_weights: np.ndarray,
+                          constraints: np.ndarray, seed: int) -> dict:
+        """The true-game row of planning on the learned game: ``eval_episodes`` episodes on
+        the evaluation's common starts, one planner per episode (``SR_plan``,
+        ``CVR_plan``; SAC's columns None)."""
+        planners: dict[int, Any] = {}
+
+        def actor(states: np.ndarray, active: np.ndarray, episodes: np.ndarray) -> np.ndarray:
+            out = []
+            for state, flying, k in zip(states, active, episodes, strict=True):
+                if k not in planners:
+                    planners[k] = self.make_planner(eta, cost_weights, constraints,
+                                                    derived_seed(seed, 5, int(k)))
+                out.append(planners[k].act(state, flying).reshape(-1))
+            return np.stack(out)
+
+        ev = solver.evaluate(self.eval_episodes, true_game=True, trajectories=True,
+                             rng=self.evaluation_rng(), actor=actor)
+        self._paths = list(ev.paths)
+        return {"CR_mean": None, "CR_std": None, "RFD": None, "SR_mean": None,
+                "CVR_mean": None, "SR_sampled": None, "CVR_sampled": None,
+                "SR_plan": ev.success_rate, "CVR_plan": ev.violation_rate,
+                "SR": ev.success_rate, "CVR": ev.violation_rate}
+
     def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True) -> dict:
-        """A last solve on the learned ``(η̄, ω_c)``, then the true-game row."""
+        """A last solve on the learned ``(η̄, ω_c)``, then the true-game row (with
+        ``eval_policy="plan"``: planning on it instead of a last solve)."""
         eta, cw = trainer.state.eta_bar[i], trainer.state.cost_weights[i]
         mask = learned_constraints(cw, self.threshold)
         solver = trainer.learner_model.inner_solver(i)
+        if self.eval_policy == "plan":
+            row = self._evaluate_planned(solver, np.asarray(eta, dtype=np.float64),
+                                         np.asarray(cw, dtype=np.float64), mask,
+                                         derived_seed(self.seed, 4, i))
+            row.update(self.rates(mask), multiplier=float(eta[-1]),
+                       reward_weights=eta[:-1].tolist(), policy_timesteps=None,
+                       final_checks=None)
+            return row
         f = self.final
         kept = solver.solve_keeping_best(
             eta, cw, f["timesteps"], checks=f["checks"], restarts=f["restarts"],
@@ -314,7 +370,8 @@ class SACTask:
 
     def evaluation_settings(self) -> dict[str, Any]:
         return {"threshold": self.threshold, "eval_episodes": self.eval_episodes,
-                "eval_action": self.eval_action,
+                "eval_action": self.eval_action, "eval_policy": self.eval_policy,
+                "planner": self.planner_settings,
                 **{f"final_{k}": v for k, v in self.final.items()}}
 
     def row_scalars(self, row: dict) -> list[tuple[str, float, int]]:

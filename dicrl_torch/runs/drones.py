@@ -13,7 +13,9 @@ Fig. 3b. The steps:
    deterministic, so the resumed run continues the same numbers).
 3. D-ICRL (and C-ICRL). A last solve of ``final_timesteps`` on each learner's learned
    ``(η̄, ω_c)`` gives its policy, rolled out ``eval_episodes`` times in the TRUE game
-   (violators freeze) with the policy's mean and with sampled actions: SR and CVR.
+   (violators freeze) with the policy's mean and with sampled actions: SR and CVR. With
+   ``eval_policy="plan"`` there is no last solve: each learner acts by planning on its
+   learned game in the nominal arena (:meth:`DroneTask.make_planner`).
 4. M(C)E-greedy given the reward learned by D-ICRL (learner 1's ``ω_r``), as in the
    paper (the arena's noise is small, so ME and MCE coincide: one row).
 """
@@ -24,12 +26,27 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations, save_drone_demonstrations
-from dicrl_torch.envs.drones import render_arena, start_support
+from dicrl_torch.envs.drones import ROOM_SIZE, in_own_door, joint_step, render_arena, start_support
 from dicrl_torch.runs.continuous import GREEDY_BASELINE, SACTask, derived_seed
+from dicrl_torch.solvers.planning import CrossEntropyPlanner, grid_values
 
-__all__ = ["DRONE_BASELINE", "DroneTask", "derived_seed"]
+__all__ = ["DRONE_BASELINE", "PLANNER_DEFAULTS", "DroneTask", "derived_seed"]
+
+PLANNER_DEFAULTS = {"horizon": 30, "knot": 5, "samples": 256, "iterations": 4, "elites": 25,
+                    "margin": 0.1, "grid_step": 0.25}
+"""``eval_policy="plan"``'s settings (docs/drones.md, "Planning on the learned game"): 3 s
+planned in 6 held commands, 4 rounds of 256 plans; learned cells grown by 0.1 m; the
+terminal value on a 0.25 m grid."""
+
+
+def _weighted(basis, states: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """``[...]`` ``basis(states) @ weights``: the basis's fast ``dot`` where it has one."""
+    if callable(getattr(basis, "dot", None)):
+        return basis.dot(states, weights)
+    return basis.compute(torch.as_tensor(states)).numpy() @ weights
 
 # The arena is (nearly) deterministic, so ME and MCE coincide: the one greedy row.
 DRONE_BASELINE = GREEDY_BASELINE
@@ -69,6 +86,85 @@ class DroneTask(SACTask):
                          true_constraints=cost_basis.true_constraints().numpy(),
                          final_score=final_score, start_states=start_support(), **settings)
         self.reward_basis, self.cost_basis = reward_basis, cost_basis
+
+    # ------------------------------------------------------------------ planning
+    def make_planner(self, eta: np.ndarray, cost_weights: np.ndarray, constraints: np.ndarray,
+                     seed: int) -> CrossEntropyPlanner:
+        """A cross-entropy planner in the nominal arena (the learner's env: its dynamics
+        and collision radius) on the learned reward ``ω_r·φ_r + λ ω_c·φ_c``, never
+        entering a learned cell or the proximity grown by ``margin``; its terminal value is
+        each drone's :func:`~dicrl_torch.solvers.planning.grid_values` (alone in the
+        room, the learned cells forbidden, its door absorbing), summed."""
+        settings = {**PLANNER_DEFAULTS, **self.planner_settings}
+        arena = self.base.env_factory(constrained=False).arena
+        dynamics, radius = arena.dynamics, arena.proximity_radius
+        wr, lam = eta[:-1], float(eta[-1])
+        forbidden = constraints.astype(np.float64)
+        grown = (self.cost_basis.dilated(settings["margin"]) if settings["margin"]
+                 else self.cost_basis)
+        values = self._grid_values(eta, cost_weights, constraints, settings, dynamics)
+        step = settings["grid_step"]
+
+        def model(states, active, actions):
+            res = joint_step(states, actions, active, None, dynamics=dynamics,
+                             proximity_radius=radius, constrained=False)
+            return res.state, res.active
+
+        def reward(states):
+            phi_r = self.reward_basis.compute(torch.as_tensor(states)).numpy()
+            return phi_r @ wr + lam * _weighted(self.cost_basis, states, cost_weights)
+
+        def entered(states):
+            return _weighted(grown, states, forbidden) > 0
+
+        def terminal(states):
+            cells = np.clip((states[..., :2] / step).astype(np.int64), 0, len(values[0]) - 1)
+            return sum(values[d][cells[:, d, 1], cells[:, d, 0]] for d in range(len(values)))
+
+        return CrossEntropyPlanner(
+            step_fn=model, reward_fn=reward, forbidden_fn=entered, terminal_fn=terminal,
+            action_shape=(self.base.spec.n_agents, 2), gamma=self.base.gamma, seed=seed,
+            **{k: settings[k] for k in ("horizon", "knot", "samples", "iterations",
+                                        "elites")})
+
+    def _grid_values(self, eta, cost_weights, constraints, settings, dynamics) -> list:
+        """Per drone ``[G, G]`` :func:`grid_values` of the learned game (cached for the
+        last weights: every episode's planner shares them)."""
+        key = (eta.tobytes(), cost_weights.tobytes(), constraints.tobytes(),
+               tuple(sorted(settings.items())))
+        if getattr(self, "_grid_cache", (None,))[0] == key:
+            return self._grid_cache[1]
+        step = settings["grid_step"]
+        G = int(round(ROOM_SIZE / step))
+        centres = (np.arange(G) + 0.5) * step
+        gx, gy = np.meshgrid(centres, centres, indexing="xy")  # [G, G], row = y
+        n = self.base.spec.n_agents
+        shares_r = self.reward_basis.agent_shares().numpy()
+        shares_c = self.cost_basis.agent_shares().numpy()
+        # Cells within half a grid step (and the margin) of a learned one are forbidden.
+        reach = settings["margin"] + step / 2
+        wide = self.cost_basis.dilated(reach) if reach else self.cost_basis
+        values = []
+        for d in range(n):
+            # Drone d at each centre, the others at the origin; only drone d's own
+            # features count (a shared one, the proximity, is left to the planner).
+            states = np.zeros((G * G, n, 4))
+            states[:, d, 0], states[:, d, 1] = gx.ravel(), gy.ravel()
+            own_r, own_c = shares_r[:, d] == 1, shares_c[:, d] == 1
+            phi_r = self.reward_basis.compute(torch.as_tensor(states)).numpy()
+            phi_c = self.cost_basis.compute(torch.as_tensor(states)).numpy()
+            reward = phi_r @ (eta[:-1] * own_r) + float(eta[-1]) * (
+                phi_c @ (cost_weights * own_c))
+            near = wide.compute(torch.as_tensor(states)).numpy()
+            forbidden = (near @ (constraints & own_c)) > 0
+            positions = states[..., :2]
+            goal = np.asarray(in_own_door(positions))[:, d]
+            values.append(grid_values(
+                reward.reshape(G, G), forbidden.reshape(G, G), goal.reshape(G, G),
+                steps_per_cell=step / (dynamics.max_speed * dynamics.dt),
+                gamma=self.base.gamma))
+        self._grid_cache = (key, values)
+        return values
 
     # ------------------------------------------------------------------ set-up
     def describe(self) -> str:

@@ -650,7 +650,7 @@ class SACConstrainedSolver:
 
     def evaluate(self, n_episodes: int | None = None, *, deterministic: bool = False,
                  true_game: bool = False, rng: np.random.Generator | None = None,
-                 trajectories: bool = False) -> SACSolution:
+                 trajectories: bool = False, actor: Callable | None = None) -> SACSolution:
         """Roll out the current policy for ``n_episodes`` episodes and estimate the
         discounted feature sums (absorbing terminal, as in training).
 
@@ -667,6 +667,12 @@ class SACConstrainedSolver:
                 random numbers.
             trajectories: also keep each episode's joint states ``[L+1, N, d_s]`` (for
                 figures).
+            actor: act with ``actor(states [b, N, d_s], active [b, N], episodes [b])``
+                instead of this solver's policy: the env actions ``[b, d_a]`` of the
+                episodes ``episodes`` (indices among the ``n``) from their current joint
+                states, ``active`` the agents still flying (neither arrived nor, in the
+                true game, frozen); e.g. a planner per episode
+                (:mod:`dicrl_torch.solvers.planning`). ``deterministic`` is then unused.
         """
         n = self.n_eval_episodes if n_episodes is None else n_episodes
         if not _is_int(n) or n < 1:
@@ -687,15 +693,21 @@ class SACConstrainedSolver:
         alive = np.ones(n, dtype=bool)
         bonus = 1.0 / (1.0 - self.gamma) if self.absorbing else 1.0
         paths = [[np.array(info["state"])] for _, info in starts] if trajectories else None
+        current = np.stack([np.array(info["state"], dtype=np.float64) for _, info in starts])
         while alive.any():
             idx = np.flatnonzero(alive)
-            actions = self.act(obs[idx], deterministic)
+            if actor is None:
+                actions = self.act(obs[idx], deterministic)
+            else:
+                flying = ~(reached[idx] | (violated[idx] if true_game else False))
+                actions = np.asarray(actor(current[idx], flying, idx))
             states = np.zeros((len(idx), *self.spec.state_shape))
             terminal = np.zeros(len(idx), dtype=bool)
             for j, i in enumerate(idx):
                 o, _, term, trunc, info = envs[i].step(actions[j])
                 state, agents_reached, agents_violated = step_fields(info)
                 obs[i], states[j], terminal[j] = o, state, term
+                current[i] = state
                 reached[i] |= agents_reached
                 violated[i] |= agents_violated
                 lengths[i] += 1

@@ -1,0 +1,140 @@
+"""The planning pieces (dicrl_torch/solvers/planning.py) against independent truth."""
+
+from __future__ import annotations
+
+import heapq
+import math
+
+import numpy as np
+import pytest
+
+from dicrl_torch.solvers.planning import FORBIDDEN_VALUE, CrossEntropyPlanner, grid_values
+
+GAMMA = 0.95
+
+
+def travel_times(forbidden: np.ndarray, goal: np.ndarray, steps_per_cell: float) -> np.ndarray:
+    """Dijkstra over the 8-connected free centres: the least time (steps) to a goal."""
+    G = forbidden.shape[0]
+    time = np.full(forbidden.shape, np.inf)
+    heap = [(0.0, i, j) for i, j in zip(*np.nonzero(goal), strict=True)]
+    for _, i, j in heap:
+        time[i, j] = 0.0
+    while heap:
+        t, i, j = heapq.heappop(heap)
+        if t > time[i, j]:
+            continue
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                a, b = i + di, j + dj
+                if (di, dj) == (0, 0) or not (0 <= a < G and 0 <= b < G) or forbidden[a, b]:
+                    continue
+                u = t + steps_per_cell * math.hypot(di, dj)
+                if u < time[a, b]:
+                    time[a, b] = u
+                    heapq.heappush(heap, (u, a, b))
+    return time
+
+
+def test_grid_values_are_the_discounted_travel_times_round_forbidden_centres():
+    """Reward 1 at the goal only: V = γ^T / (1 - γ) with T the shortest flight time round
+    the forbidden centres (Dijkstra); enclosed centres stay (0); forbidden ones are
+    FORBIDDEN_VALUE."""
+    G = 9
+    forbidden = np.zeros((G, G), bool)
+    forbidden[4, 1:8] = True  # a wall across the middle, open at both ends
+    forbidden[0:3, 6] = forbidden[2, 6:9] = True  # a sealed corner pocket
+    goal = np.zeros((G, G), bool)
+    goal[8, 4] = True
+    values = grid_values(goal.astype(float), forbidden, goal, steps_per_cell=1.5,
+                         gamma=GAMMA)
+    time = travel_times(forbidden, goal, 1.5)
+    free = ~forbidden
+    expect = np.where(np.isfinite(time), GAMMA ** np.where(np.isfinite(time), time, 0)
+                      / (1 - GAMMA), 0.0)
+    np.testing.assert_allclose(values[free], expect[free], rtol=1e-6)
+    assert (values[forbidden] == FORBIDDEN_VALUE).all()
+    assert values[0, 8] == 0.0 and np.isinf(time[0, 8])  # in the pocket: no way out
+    # Round the wall: a centre just below it is farther (in time) than its distance.
+    assert time[3, 4] > 5 * 1.5
+
+
+def test_grid_values_stay_where_staying_pays_and_refuse_bad_input():
+    G = 5
+    reward = np.full((G, G), 2.0)
+    reward[0, 0] = 3.0
+    none = np.zeros((G, G), bool)
+    values = grid_values(reward, none, none, steps_per_cell=1.0, gamma=GAMMA)
+    assert values[0, 0] == pytest.approx(3.0 / (1 - GAMMA))
+    # Elsewhere: fly to (0, 0), earning 2 on the way, better than staying at 2.
+    assert (values[1:, 1:] > 2.0 / (1 - GAMMA)).all()
+    with pytest.raises(ValueError, match="square"):
+        grid_values(np.zeros((2, 3)), np.zeros((2, 3), bool), np.zeros((2, 3), bool),
+                    steps_per_cell=1.0, gamma=GAMMA)
+    with pytest.raises(ValueError, match="NaN"):
+        grid_values(np.full((2, 2), np.nan), np.zeros((2, 2), bool), np.zeros((2, 2), bool),
+                    steps_per_cell=1.0, gamma=GAMMA)
+    with pytest.raises(ValueError, match="gamma"):
+        grid_values(reward, none, none, steps_per_cell=1.0, gamma=1.0)
+
+
+def _point_planner(seed: int = 0) -> CrossEntropyPlanner:
+    """One point agent, ``x' = x + 0.2 a``, goal disc at (2, 0), a wall x in [0.9, 1.1],
+    |y| < 1 between; the reward is 1 at the goal (absorbing), the terminal value the
+    negative distance to the goal."""
+    goal = np.array([2.0, 0.0])
+
+    def step(states, active, actions):
+        moved = states + 0.2 * np.clip(actions, -1, 1) * active[..., None]
+        arrived = np.linalg.norm(moved[..., 0, :] - goal, axis=-1) < 0.3
+        return moved, active & ~arrived[..., None]
+
+    def reward(states):
+        return (np.linalg.norm(states[..., 0, :] - goal, axis=-1) < 0.3).astype(float)
+
+    def wall(states):
+        x, y = states[..., 0, 0], states[..., 0, 1]
+        return (np.abs(x - 1.0) < 0.1) & (np.abs(y) < 1.0)
+
+    def terminal(states):
+        return -np.linalg.norm(states[:, 0, :] - goal, axis=-1)
+
+    return CrossEntropyPlanner(step_fn=step, reward_fn=reward, forbidden_fn=wall,
+                               terminal_fn=terminal, action_shape=(1, 2), gamma=GAMMA,
+                               horizon=20, knot=4, samples=128, iterations=4, elites=12,
+                               seed=seed)
+
+
+def test_cross_entropy_planner_flies_round_a_wall_to_the_goal():
+    planner = _point_planner()
+    state, active, actions = np.zeros((1, 2)), np.ones(1, bool), []
+    path = [state.copy()]
+    for _ in range(60):
+        a = planner.act(state, active)
+        actions.append(a)
+        state, active = planner.step_fn(state[None], active[None], a[None])
+        state, active = state[0], active[0]
+        path.append(state.copy())
+        if not active.any():
+            break
+    path = np.stack(path)
+    assert not active.any(), "the goal was not reached in 60 steps"
+    assert not planner.forbidden_fn(path[:, None]).any()
+    assert np.abs(path[:, 0, 1]).max() >= 1.0  # it went round the wall's end
+    # The same seed plans the same actions.
+    twin = _point_planner()
+    state, active = np.zeros((1, 2)), np.ones(1, bool)
+    for a in actions[:5]:
+        np.testing.assert_array_equal(twin.act(state, active), a)
+        state, active = (x[0] for x in twin.step_fn(state[None], active[None], a[None]))
+
+
+def test_cross_entropy_planner_refuses_bad_sizes():
+    kwargs = dict(step_fn=None, reward_fn=None, forbidden_fn=None, terminal_fn=None,
+                  action_shape=(1, 2), gamma=GAMMA)
+    with pytest.raises(ValueError, match="multiple of knot"):
+        CrossEntropyPlanner(**kwargs, horizon=10, knot=3)
+    with pytest.raises(ValueError, match="elites=50 exceeds"):
+        CrossEntropyPlanner(**kwargs, samples=20, elites=50)
+    with pytest.raises(ValueError, match="samples must be a positive int"):
+        CrossEntropyPlanner(**kwargs, samples=0)
