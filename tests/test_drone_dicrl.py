@@ -206,6 +206,8 @@ def test_a_margin_needs_a_cost_basis_that_can_grow():
                             "solver.eval_policy=sac"))
     with pytest.raises(ValueError, match="set solver.eval_policy=sac"):
         drone_task(_compose("features/cost=rbf"))
+    with pytest.raises(ValueError, match="lower solver.planner.grid_step"):
+        drone_task(_compose("solver.planner.grid_step=1.0"))
 
 
 TINY = ["experiment=table2_quick", "env.arena.max_steps=20", "eval_episodes=2",

@@ -93,6 +93,13 @@ class DroneTask(SACTask):
                 f"eval_policy='plan' needs a cost basis of cells that can be grown by a margin "
                 f"(dilated(margin), e.g. CellOccupancyCostBasis); {type(cost_basis).__name__} "
                 f"has none: set solver.eval_policy=sac.")
+        if self.eval_policy == "plan":
+            plan = {**PLANNER_DEFAULTS, **self.planner_settings}
+            if not plan["margin"] + plan["grid_step"] / 2 < 0.5:
+                # grid_values forbids a centre whose cell grown by both touches a learned one
+                raise ValueError(
+                    f"planner margin {plan['margin']} + grid_step {plan['grid_step']} / 2 must "
+                    f"stay below half a cell (0.5 m); lower solver.planner.grid_step.")
 
     # ------------------------------------------------------------------ planning
     def make_planner(self, eta: np.ndarray, cost_weights: np.ndarray, constraints: np.ndarray,
