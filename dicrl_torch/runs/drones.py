@@ -110,8 +110,10 @@ class DroneTask(SACTask):
         each drone's :func:`~dicrl_torch.solvers.planning.grid_values` (alone in the
         room, the learned cells forbidden, its door absorbing), summed."""
         settings = {**PLANNER_DEFAULTS, **self.planner_settings}
-        arena = self.base.env_factory(constrained=False).arena
-        dynamics, radius = arena.dynamics, arena.proximity_radius
+        if getattr(self, "_nominal_model", None) is None:  # one env read, not one per episode
+            arena = self.base.env_factory(constrained=False).arena
+            self._nominal_model = (arena.dynamics, arena.proximity_radius)
+        dynamics, radius = self._nominal_model
         wr, lam = eta[:-1], float(eta[-1])
         forbidden = constraints.astype(np.float64)
         grown = (self.cost_basis.dilated(settings["margin"]) if settings["margin"]
