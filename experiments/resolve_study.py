@@ -6,6 +6,8 @@
     # The last solve of one learner again, with solver settings changed for it only.
     .venv/bin/python experiments/resolve_study.py last-solve RUN_DIR D-ICRL 0 demo_value_bound=true
     .venv/bin/python experiments/resolve_study.py last-solve RUN_DIR C-ICRL 0 final_margin=0.2
+    .venv/bin/python experiments/resolve_study.py last-solve RUN_DIR D-ICRL 0 eval_policy=plan \
+        planner.samples=128 planner.iterations=3
 
 RUN_DIR is a Hydra run directory of ``experiments/train.py`` (its ``.hydra/config.yaml`` and
 ``checkpoint.pt``). The trainers are rebuilt from the config and loaded from the end of
@@ -31,7 +33,8 @@ from dicrl_torch.runs.checkpoints import Checkpoints
 from dicrl_torch.runs.runner import make_trainer
 
 SETTINGS = {"demo_bc": float, "demo_value_bound": lambda v: {"true": True, "false": False}[v],
-            "final_margin": float, "eval_policy": str}
+            "final_margin": float, "eval_policy": str, "planner.samples": int,
+            "planner.iterations": int, "planner.elites": int, "eval_episodes": int}
 
 
 def load(run: Path, method: str):
@@ -86,6 +89,10 @@ def last_solve(run: Path, method: str, learner: int, settings: dict) -> None:
             task.penalty_basis = task.cost_basis.dilated(value) if value else None
         elif key == "eval_policy":  # "plan": no last solve, planning on the learned game
             task.eval_policy = value
+        elif key.startswith("planner."):
+            task.planner_settings = {**task.planner_settings, key.split(".", 1)[1]: value}
+        elif key == "eval_episodes":
+            task.eval_episodes = value
         else:  # the solver's and its SB3 model's copy
             setattr(solver, key, value)
             setattr(solver.model, key, value)
@@ -128,7 +135,8 @@ def main(argv: list[str] | None = None) -> None:
             settings[key] = SETTINGS[key](value)
         except (KeyError, ValueError):
             parser.error(f"{item!r}: give a number for demo_bc and final_margin (metres), "
-                         f"true/false for demo_value_bound.")
+                         f"true/false for demo_value_bound, an int for planner.* and "
+                         f"eval_episodes.")
     last_solve(args.run, args.method, args.learner, settings)
 
 

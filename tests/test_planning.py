@@ -78,10 +78,10 @@ def test_grid_values_stay_where_staying_pays_and_refuse_bad_input():
         grid_values(reward, none, none, steps_per_cell=1.0, gamma=1.0)
 
 
-def _point_planner(seed: int = 0) -> CrossEntropyPlanner:
+def _point_planner(seed=0) -> CrossEntropyPlanner:
     """One point agent, ``x' = x + 0.2 a``, goal disc at (2, 0), a wall x in [0.9, 1.1],
     |y| < 1 between; the reward is 1 at the goal (absorbing), the terminal value the
-    negative distance to the goal."""
+    negative distance to the goal. ``seed``: an int (one problem) or one seed per problem."""
     goal = np.array([2.0, 0.0])
 
     def step(states, active, actions):
@@ -105,28 +105,60 @@ def _point_planner(seed: int = 0) -> CrossEntropyPlanner:
                                seed=seed)
 
 
+def _fly(planner, starts, steps, which=None):
+    """Fly problems ``which`` (default all) from ``starts [P, 1, 2]`` for up to ``steps``
+    steps, each stopping at the goal; ``(paths [P] of [t, 1, 2], actions [P] of lists)``."""
+    which = np.arange(planner.problems) if which is None else np.asarray(which)
+    state, active = starts.copy(), np.ones((len(which), 1), bool)
+    paths = [[s.copy()] for s in state]
+    actions = [[] for _ in which]
+    for _ in range(steps):
+        flying = np.flatnonzero(active.any(-1))
+        if not len(flying):
+            break
+        a = planner.act(state[flying], active[flying], which[flying])
+        moved, still = planner.step_fn(state[flying], active[flying], a)
+        for j, k in enumerate(flying):
+            actions[k].append(a[j])
+            paths[k].append(moved[j].copy())
+        state[flying], active[flying] = moved, still
+    return [np.stack(p) for p in paths], actions
+
+
 def test_cross_entropy_planner_flies_round_a_wall_to_the_goal():
     planner = _point_planner()
-    state, active, actions = np.zeros((1, 2)), np.ones(1, bool), []
-    path = [state.copy()]
-    for _ in range(60):
-        a = planner.act(state, active)
-        actions.append(a)
-        state, active = planner.step_fn(state[None], active[None], a[None])
-        state, active = state[0], active[0]
-        path.append(state.copy())
-        if not active.any():
-            break
-    path = np.stack(path)
-    assert not active.any(), "the goal was not reached in 60 steps"
+    paths, actions = _fly(planner, np.zeros((1, 1, 2)), 60)
+    path = paths[0]
+    assert np.linalg.norm(path[-1, 0] - [2.0, 0.0]) < 0.3, "the goal was not reached in 60 steps"
     assert not planner.forbidden_fn(path[:, None]).any()
     assert np.abs(path[:, 0, 1]).max() >= 1.0  # it went round the wall's end
     # The same seed plans the same actions.
     twin = _point_planner()
-    state, active = np.zeros((1, 2)), np.ones(1, bool)
-    for a in actions[:5]:
-        np.testing.assert_array_equal(twin.act(state, active), a)
-        state, active = (x[0] for x in twin.step_fn(state[None], active[None], a[None]))
+    state, active = np.zeros((1, 1, 2)), np.ones((1, 1), bool)
+    for a in actions[0][:5]:
+        np.testing.assert_array_equal(twin.act(state, active)[0], a)
+        state, active = twin.step_fn(state, active, a[None])
+
+
+def test_cross_entropy_planner_batches_independent_problems():
+    """Problems planned together (one model call on all their plans, episodes ending at
+    different steps) fly exactly as each planned alone with its seed, and a subset asked
+    for by ``which`` as well."""
+    starts = np.array([[[0.0, 0.0]], [[0.0, 0.5]], [[1.5, -1.5]]])
+    together, acts = _fly(_point_planner(seed=[3, 4, 5]), starts, 60)
+    assert len({len(p) for p in together}) > 1  # the episodes end at different steps
+    for k, seed in enumerate([3, 4, 5]):
+        alone, alone_acts = _fly(_point_planner(seed=seed), starts[k:k + 1], 60)
+        np.testing.assert_array_equal(alone[0], together[k])
+        np.testing.assert_array_equal(np.stack(alone_acts[0]), np.stack(acts[k]))
+    subset, _ = _fly(_point_planner(seed=[3, 4, 5]), starts[[2, 0]], 60, which=[2, 0])
+    np.testing.assert_array_equal(subset[0], together[2])
+    np.testing.assert_array_equal(subset[1], together[0])
+    planner = _point_planner(seed=[3, 4])
+    with pytest.raises(ValueError, match="distinct problems"):
+        planner.act(np.zeros((2, 1, 2)), np.ones((2, 1), bool), [1, 1])
+    with pytest.raises(ValueError, match="one row per problem"):
+        planner.act(np.zeros((1, 1, 2)), np.ones((1, 1), bool), [0, 1])
 
 
 def test_cross_entropy_planner_refuses_bad_sizes():

@@ -142,15 +142,16 @@ class CellOccupancyCostBasis(DroneFeatureBasis):
         G, pos = GRID_CELLS, np.asarray(states, dtype=np.float64)[..., :2]
         w = np.asarray(weights, dtype=np.float64)
         lo = np.clip(np.floor((pos - self.margin) / CELL_SIZE), 0, G - 1).astype(np.int64)
-        hi = np.clip(np.floor((pos + self.margin) / CELL_SIZE), 0, G - 1).astype(np.int64)
         offsets = np.arange(N_DRONES) * G * G
-        # Each distinct cell of the δ-square once: the x and y of its two corners differ
-        # only near an edge.
-        x2, y2 = hi[..., 0] != lo[..., 0], hi[..., 1] != lo[..., 1]
         total = w[lo[..., 1] * G + lo[..., 0] + offsets]
-        total = total + x2 * w[lo[..., 1] * G + hi[..., 0] + offsets]
-        total = total + y2 * w[hi[..., 1] * G + lo[..., 0] + offsets]
-        total = total + (x2 & y2) * w[hi[..., 1] * G + hi[..., 0] + offsets]
+        if self.margin:
+            hi = np.clip(np.floor((pos + self.margin) / CELL_SIZE), 0, G - 1).astype(np.int64)
+            # Each distinct cell of the δ-square once: the x and y of its two corners
+            # differ only near an edge.
+            x2, y2 = hi[..., 0] != lo[..., 0], hi[..., 1] != lo[..., 1]
+            total = total + x2 * w[lo[..., 1] * G + hi[..., 0] + offsets]
+            total = total + y2 * w[hi[..., 1] * G + lo[..., 0] + offsets]
+            total = total + (x2 & y2) * w[hi[..., 1] * G + hi[..., 0] + offsets]
         gap = pos[..., 0, :] - pos[..., 1, :]
         near = (gap * gap).sum(-1) < (self.proximity_radius + self.margin) ** 2
         return total.sum(-1) + near * w[-1]

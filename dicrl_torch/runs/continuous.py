@@ -312,27 +312,23 @@ class SACTask:
         return row
 
     def make_planner(self, eta: np.ndarray, cost_weights: np.ndarray, constraints: np.ndarray,
-                     seed: int):
+                     seeds: Sequence[int]):
         """A planner (:class:`~dicrl_torch.solvers.planning.CrossEntropyPlanner`) acting on
         the learned game ``(η [l_r + 1], ω_c [l_c])`` with ``constraints [l_c]`` bool
-        forbidden, in the nominal model; a game with a model overrides this."""
+        forbidden, in the nominal model, for one problem (episode) per seed; a game with a
+        model overrides this."""
         raise NotImplementedError(f"{type(self).__name__} has no model to plan in.")
 
     def _evaluate_planned(self, solver, eta: np.ndarray, cost_weights: np.ndarray,
                           constraints: np.ndarray, seed: int) -> dict:
         """The true-game row of planning on the learned game: ``eval_episodes`` episodes on
-        the evaluation's common starts, one planner per episode (``SR_plan``,
-        ``CVR_plan``; SAC's columns None)."""
-        planners: dict[int, Any] = {}
+        the evaluation's common starts, each its own planning problem with its own random
+        stream, planned together (``SR_plan``, ``CVR_plan``; SAC's columns None)."""
+        planner = self.make_planner(eta, cost_weights, constraints,
+                                    [derived_seed(seed, 5, k) for k in range(self.eval_episodes)])
 
         def actor(states: np.ndarray, active: np.ndarray, episodes: np.ndarray) -> np.ndarray:
-            out = []
-            for state, flying, k in zip(states, active, episodes, strict=True):
-                if k not in planners:
-                    planners[k] = self.make_planner(eta, cost_weights, constraints,
-                                                    derived_seed(seed, 5, int(k)))
-                out.append(planners[k].act(state, flying).reshape(-1))
-            return np.stack(out)
+            return planner.act(states, active, episodes).reshape(len(episodes), -1)
 
         ev = solver.evaluate(self.eval_episodes, true_game=True, trajectories=True,
                              rng=self.evaluation_rng(), actor=actor)

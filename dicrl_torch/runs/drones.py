@@ -103,12 +103,13 @@ class DroneTask(SACTask):
 
     # ------------------------------------------------------------------ planning
     def make_planner(self, eta: np.ndarray, cost_weights: np.ndarray, constraints: np.ndarray,
-                     seed: int) -> CrossEntropyPlanner:
+                     seeds: Sequence[int]) -> CrossEntropyPlanner:
         """A cross-entropy planner in the nominal arena (the learner's env: its dynamics
         and collision radius) on the learned reward ``ω_r·φ_r + λ ω_c·φ_c``, never
         entering a learned cell or the proximity grown by ``margin``; its terminal value is
         each drone's :func:`~dicrl_torch.solvers.planning.grid_values` (alone in the
-        room, the learned cells forbidden, its door absorbing), summed."""
+        room, the learned cells forbidden, its door absorbing), summed. One planning
+        problem (episode) per seed."""
         settings = {**PLANNER_DEFAULTS, **self.planner_settings}
         if getattr(self, "_nominal_model", None) is None:  # one env read, not one per episode
             arena = self.base.env_factory(constrained=False).arena
@@ -139,7 +140,7 @@ class DroneTask(SACTask):
 
         return CrossEntropyPlanner(
             step_fn=model, reward_fn=reward, forbidden_fn=entered, terminal_fn=terminal,
-            action_shape=(self.base.spec.n_agents, 2), gamma=self.base.gamma, seed=seed,
+            action_shape=(self.base.spec.n_agents, 2), gamma=self.base.gamma, seed=seeds,
             **{k: settings[k] for k in ("horizon", "knot", "samples", "iterations",
                                         "elites")})
 

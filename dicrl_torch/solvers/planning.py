@@ -16,12 +16,13 @@ This module holds the two game-free pieces; the drone arena's glue is in
   grid, the value of each centre under a per-centre reward, with forbidden centres and
   absorbing goal centres: the best of staying for ever and moving to a neighbour.
 - :class:`CrossEntropyPlanner`: the cross-entropy method over piecewise-constant action
-  sequences, re-planned every step, warm-started from the previous plan.
+  sequences, re-planned every step, warm-started from the previous plan, for many
+  independent problems (episodes) in one batched model call.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -99,13 +100,18 @@ def grid_values(reward: np.ndarray, forbidden: np.ndarray, goal: np.ndarray, *,
 
 
 class CrossEntropyPlanner:
-    """Receding-horizon cross-entropy planning in a batched model.
+    """Receding-horizon cross-entropy planning in a batched model, for several
+    independent problems at once (e.g. one per evaluation episode).
 
     A plan is ``horizon // knot`` actions, each held for ``knot`` steps. Every call of
-    :meth:`act` samples ``samples`` plans round the current mean (the previous plan
-    shifted by the steps taken since, the mean itself always among them), rolls them out
-    in ``step_fn``, scores them, refits mean and spread to the ``elites`` best, and after
-    ``iterations`` rounds returns the first action of the mean.
+    :meth:`act` samples, for each problem asked, ``samples`` plans round its current mean
+    (its previous plan shifted by the steps taken since, the mean itself always among
+    them), rolls out the plans of all those problems in one ``step_fn`` call per step,
+    scores them, refits each problem's mean and spread to its ``elites`` best, and after
+    ``iterations`` rounds returns the first action of each mean. Each problem draws from
+    its own random stream, so its plans do not depend on which other problems are planned
+    beside it (batching is for speed: one model call on ``P × samples`` states instead of
+    ``P`` calls on ``samples``).
 
     Args:
         step_fn: ``(states [B, ...], active [B, N], actions [B, *action_shape]) ->
@@ -117,9 +123,9 @@ class CrossEntropyPlanner:
         action_shape: shape of one action, e.g. ``(N, 2)``; actions lie in ``[-1, 1]``.
         gamma: discount in ``(0, 1)``.
         horizon, knot: steps planned, and steps each planned action is held.
-        samples, iterations, elites: the cross-entropy method's sizes.
+        samples, iterations, elites: the cross-entropy method's sizes (per problem).
         init_std: spread of the first round round a zero (or warm) mean.
-        seed: the planner's own random stream.
+        seed: one problem's random stream, or a sequence of seeds, one problem each.
 
     A plan that reaches a state where no agent is active ends there: that state is
     absorbing (its reward earned for ever, ``1 / (1 - γ)``), as in the SAC solver.
@@ -128,7 +134,8 @@ class CrossEntropyPlanner:
     def __init__(self, *, step_fn: Callable, reward_fn: Callable, forbidden_fn: Callable,
                  terminal_fn: Callable, action_shape: tuple[int, ...], gamma: float,
                  horizon: int = 30, knot: int = 5, samples: int = 256, iterations: int = 4,
-                 elites: int = 25, init_std: float = 0.6, seed: int = 0) -> None:
+                 elites: int = 25, init_std: float = 0.6,
+                 seed: int | Sequence[int] = 0) -> None:
         for name, value in (("horizon", horizon), ("knot", knot), ("samples", samples),
                             ("iterations", iterations), ("elites", elites)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -139,28 +146,42 @@ class CrossEntropyPlanner:
             raise ValueError(f"elites={elites} exceeds samples={samples}.")
         if not 0.0 < gamma < 1.0:
             raise ValueError(f"gamma must lie in (0, 1), got {gamma!r}.")
+        seeds = [seed] if isinstance(seed, (int, np.integer)) else list(seed)
+        if not seeds:
+            raise ValueError("seed must be an int or a non-empty sequence of ints (one "
+                             "problem per seed).")
         self.step_fn, self.reward_fn = step_fn, reward_fn
         self.forbidden_fn, self.terminal_fn = forbidden_fn, terminal_fn
         self.action_shape = tuple(action_shape)
         self.gamma, self.horizon, self.knot = float(gamma), horizon, knot
         self.samples, self.iterations, self.elites = samples, iterations, elites
         self.init_std = float(init_std)
-        self.rng = np.random.default_rng(seed)
+        self.rngs = [np.random.default_rng(int(s)) for s in seeds]
         self.reset()
 
-    def reset(self) -> None:
-        """Forget the previous plan (at the start of an episode)."""
-        self._mean = np.zeros((self.horizon // self.knot, *self.action_shape))
-        self._held = 0  # steps the first planned action has been held
+    @property
+    def problems(self) -> int:
+        """The number of independent problems planned for."""
+        return len(self.rngs)
 
-    def returns(self, state: Any, active: Any, knots: np.ndarray) -> np.ndarray:
-        """``[B]`` learned returns of plans ``knots [B, K, *action_shape]`` from ``state``
-        (lowered by :data:`FORBIDDEN_VALUE` for a plan entering a constraint before it
-        ends)."""
-        B = knots.shape[0]
-        actions = np.repeat(knots, self.knot, axis=1)[:, self._held:][:, :self.horizon]
-        states = np.repeat(np.asarray(state)[None], B, 0)
-        flying = np.repeat(np.asarray(active, bool)[None], B, 0)
+    def reset(self) -> None:
+        """Forget every problem's previous plan (at the start of its episode)."""
+        self._mean = np.zeros((self.problems, self.horizon // self.knot, *self.action_shape))
+        self._held = np.zeros(self.problems, dtype=np.int64)  # steps the first action held
+
+    def returns(self, states: Any, active: Any, knots: np.ndarray, held: int = 0
+                ) -> np.ndarray:
+        """``[P, S]`` learned returns of plans ``knots [P, S, K, *action_shape]`` from
+        problem ``p``'s ``states[p]`` with ``active [P, N]`` agents, the first knot already
+        held for ``held`` steps (lowered by :data:`FORBIDDEN_VALUE` for a plan entering a
+        constraint before it ends)."""
+        P, S = knots.shape[:2]
+        B = P * S
+        actions = np.repeat(knots, self.knot, axis=2)[:, :, held:][:, :, :self.horizon]
+        actions = actions.reshape(B, actions.shape[2], *self.action_shape)
+        # Problem-major: rows p*S .. p*S + S - 1 are problem p's plans.
+        states = np.repeat(np.asarray(states), S, 0)
+        flying = np.repeat(np.asarray(active, bool), S, 0)
         trajectory, alive = [], []
         for t in range(actions.shape[1]):
             states, flying = self.step_fn(states, flying, actions[:, t])
@@ -178,25 +199,49 @@ class CrossEntropyPlanner:
                                  * np.asarray(self.terminal_fn(trajectory[-1])), 0.0)
         entered = (np.asarray(self.forbidden_fn(trajectory), bool) & before).any(0)
         # Below every plan that keeps out, still ranked by return among themselves.
-        return np.where(entered, total + FORBIDDEN_VALUE, total)
+        return np.where(entered, total + FORBIDDEN_VALUE, total).reshape(P, S)
 
-    def act(self, state: Any, active: Any) -> np.ndarray:
-        """The next action ``[*action_shape]`` from ``state`` with ``active`` agents."""
-        mean = self._mean
+    def act(self, states: Any, active: Any, which: Any = None) -> np.ndarray:
+        """The next actions ``[P', *action_shape]`` of problems ``which [P']`` (default
+        all, in order) from their ``states [P', ...]`` with ``active [P', N]`` agents."""
+        which = (np.arange(self.problems) if which is None
+                 else np.asarray(which, dtype=np.int64).reshape(-1))
+        states, active = np.asarray(states), np.asarray(active, bool)
+        if len(states) != len(which) or len(active) != len(which):
+            raise ValueError(f"states ({len(states)}) and active ({len(active)}) need one row "
+                             f"per problem asked ({len(which)}).")
+        if len(which) and (which.min() < 0 or which.max() >= self.problems
+                           or len(np.unique(which)) != len(which)):
+            raise ValueError(f"which must hold distinct problems in [0, {self.problems}), "
+                             f"got {which.tolist()}.")
+        out = np.empty((len(which), *self.action_shape))
+        # Problems whose first knot has been held equally long share one rollout batch.
+        for held in np.unique(self._held[which]):
+            rows = np.flatnonzero(self._held[which] == held)
+            out[rows] = self._act_held(states[rows], active[rows], which[rows], int(held))
+        return out
+
+    def _act_held(self, states: np.ndarray, active: np.ndarray, which: np.ndarray,
+                  held: int) -> np.ndarray:
+        """:meth:`act` for problems ``which`` whose first knot has been held ``held``
+        steps."""
+        mean = self._mean[which]  # [P', K, *A]
         std = np.full_like(mean, self.init_std)
+        spare = (None,) * (mean.ndim - 1)
         for _ in range(self.iterations):
-            knots = mean[None] + std[None] * self.rng.standard_normal((self.samples,
-                                                                       *mean.shape))
-            knots = np.clip(knots, -1.0, 1.0)
-            knots[0] = mean
-            scores = self.returns(state, active, knots)
-            elite = knots[np.argsort(-scores, kind="stable")[:self.elites]]
-            mean, std = elite.mean(0), elite.std(0) + 0.05
-        action = mean[0].copy()
+            noise = np.stack([self.rngs[p].standard_normal((self.samples, *mean.shape[1:]))
+                              for p in which])
+            knots = np.clip(mean[:, None] + std[:, None] * noise, -1.0, 1.0)
+            knots[:, 0] = mean
+            scores = self.returns(states, active, knots, held)
+            best = np.argsort(-scores, axis=1, kind="stable")[:, :self.elites]
+            elite = np.take_along_axis(knots, best[(...,) + spare], axis=1)
+            mean, std = elite.mean(1), elite.std(1) + 0.05
+        action = mean[:, 0].copy()
         # Hold the first knot for `knot` steps, then shift the plan by one knot.
-        self._held += 1
-        if self._held == self.knot:
-            mean = np.concatenate([mean[1:], mean[-1:]])
-            self._held = 0
-        self._mean = mean
+        held += 1
+        if held == self.knot:
+            mean = np.concatenate([mean[:, 1:], mean[:, -1:]], axis=1)
+            held = 0
+        self._mean[which], self._held[which] = mean, held
         return action
