@@ -317,7 +317,7 @@ def test_planning_on_the_true_game_flies_both_drones_round_the_block():
     task = drone_task(_compose("eval_episodes=2", "solver.eval_policy=plan"))
     truth = task.cost_basis.true_constraints().numpy()
     eta = np.array([1.0, 1.0, 1.0, 1.0, -10.0])
-    row = task._evaluate_planned(task.base, eta, truth.astype(np.float64), truth, seed=0)
+    row = task.evaluate_planned(task.base, eta, truth.astype(np.float64), truth, seed=0)
     assert row["SR"] == 1.0 and row["CVR"] == 0.0 and row["SR_plan"] == 1.0
     assert row["SR_mean"] is None  # no SAC policy was flown
     for path in task._paths:

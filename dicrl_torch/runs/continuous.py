@@ -319,7 +319,7 @@ class SACTask:
         model overrides this."""
         raise NotImplementedError(f"{type(self).__name__} has no model to plan in.")
 
-    def _evaluate_planned(self, solver, eta: np.ndarray, cost_weights: np.ndarray,
+    def evaluate_planned(self, solver, eta: np.ndarray, cost_weights: np.ndarray,
                           constraints: np.ndarray, seed: int) -> dict:
         """The true-game row of planning on the learned game: ``eval_episodes`` episodes on
         the evaluation's common starts, each its own planning problem with its own random
@@ -345,7 +345,7 @@ class SACTask:
         mask = learned_constraints(cw, self.threshold)
         solver = trainer.learner_model.inner_solver(i)
         if self.eval_policy == "plan":
-            row = self._evaluate_planned(solver, np.asarray(eta, dtype=np.float64),
+            row = self.evaluate_planned(solver, np.asarray(eta, dtype=np.float64),
                                          np.asarray(cw, dtype=np.float64), mask,
                                          derived_seed(self.seed, 4, i))
             row.update(self.rates(mask), multiplier=float(eta[-1]),
