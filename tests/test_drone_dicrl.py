@@ -326,3 +326,20 @@ def test_planning_on_the_true_game_flies_both_drones_round_the_block():
                                {**PLANNER_DEFAULTS}, task.base.env_factory().arena.dynamics)
     block = values[0][5 * 4 + 1, 4 * 4 + 1]  # a centre inside cell (4, 5)
     assert block < -1e8 and values[0].max() > 0
+
+
+def test_measure_planner_reports_a_planned_true_game_row(capsys):
+    """experiments/measure_planner.py flies the planner on the true game with the true
+    set; the same settings twice give the same flights (checksum)."""
+    import measure_planner  # experiments/ is on pytest's pythonpath
+
+    small = ["--episodes", "2", "experiment=table2_quick", "solver.planner.samples=16",
+             "solver.planner.iterations=1", "solver.planner.elites=4",
+             "solver.planner.horizon=10"]
+    rows = []
+    for _ in range(2):
+        measure_planner.main(small)
+        rows.append(json.loads(capsys.readouterr().out.strip().splitlines()[-1]))
+    assert rows[0]["episodes"] == 2 and rows[0]["planner"]["samples"] == 16
+    assert 0 <= rows[0]["SR"] <= 1 and rows[0]["env_steps"] > 0
+    assert rows[0]["checksum"] == rows[1]["checksum"]
