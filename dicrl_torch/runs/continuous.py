@@ -320,7 +320,7 @@ class SACTask:
         raise NotImplementedError(f"{type(self).__name__} has no model to plan in.")
 
     def evaluate_planned(self, solver, eta: np.ndarray, cost_weights: np.ndarray,
-                          constraints: np.ndarray, seed: int) -> dict:
+                         constraints: np.ndarray, seed: int) -> dict:
         """The true-game row of planning on the learned game: ``eval_episodes`` episodes on
         the evaluation's common starts, each its own planning problem with its own random
         stream, planned together (``SR_plan``, ``CVR_plan``; SAC's columns None)."""
@@ -346,8 +346,8 @@ class SACTask:
         solver = trainer.learner_model.inner_solver(i)
         if self.eval_policy == "plan":
             row = self.evaluate_planned(solver, np.asarray(eta, dtype=np.float64),
-                                         np.asarray(cw, dtype=np.float64), mask,
-                                         derived_seed(self.seed, 4, i))
+                                        np.asarray(cw, dtype=np.float64), mask,
+                                        derived_seed(self.seed, 4, i))
             row.update(self.rates(mask), multiplier=float(eta[-1]),
                        reward_weights=eta[:-1].tolist(), policy_timesteps=None,
                        final_checks=None)
