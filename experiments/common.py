@@ -122,7 +122,8 @@ def sac_task_settings(cfg) -> dict:
     return dict(
         split=list(cfg.split), seed=cfg.seed, eval_episodes=cfg.eval_episodes,
         eval_action=s.eval_action, timesteps=s.timesteps, n_eval_episodes=s.n_eval_episodes,
-        warmup_timesteps=s.warmup_timesteps, init_reward_weights=a.init_reward_weights,
+        warmup_timesteps=s.warmup_timesteps, warmup_restarts=s.get("warmup_restarts", 1),
+        warmup_checks=s.get("warmup_checks", 1), init_reward_weights=a.init_reward_weights,
         init_multiplier=a.init_multiplier, init_cost_weights=a.init_cost_weights,
         final_timesteps=s.final_timesteps, final_checks=s.final_checks,
         final_restarts=s.final_restarts, final_score=s.final_score,

@@ -433,3 +433,23 @@ def test_planning_needs_a_game_with_a_model():
         tiny_task(eval_policy="plan")
     with pytest.raises(ValueError, match="eval_policy must be one of"):
         tiny_task(eval_policy="search")
+
+
+def test_warmup_keeps_the_best_scored_chunk_of_several_lineages(capsys):
+    """warmup_restarts / warmup_checks: the warm-up scores every chunk of every lineage by
+    the nominal share of agents at their goals (no constraint known) and keeps the best;
+    1 and 1 is the plain warm-up. Bad values are refused, naming the setting."""
+    t = tiny_task(warmup_restarts=2, warmup_checks=2)
+    base = t._warmed_base()
+    checks = base.last_checks
+    assert [(c["restart"], c["timesteps"]) for c in checks] == [(0, 30), (0, 60), (1, 30),
+                                                                (1, 60)]
+    assert all(0.0 <= c["success_under_constraints"] <= 1.0 for c in checks)
+    assert "SAC warm-up: 60 steps" in capsys.readouterr().out
+    plain = tiny_task()
+    plain._warmed_base()
+    assert plain.base.last_checks == []  # one lineage, one chunk: solve, no scoring
+    with pytest.raises(ValueError, match="warmup_restarts"):
+        tiny_task(warmup_restarts=0)
+    with pytest.raises(ValueError, match="warmup_checks=100 exceeds warmup_timesteps=60"):
+        tiny_task(warmup_checks=100)

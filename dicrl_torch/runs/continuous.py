@@ -83,6 +83,12 @@ class SACTask:
             (the row holds both).
         timesteps, n_eval_episodes: SAC steps and rollouts per inner solve.
         warmup_timesteps: pre-training steps on ``η(0), ω_c(0)`` (0: none).
+        warmup_restarts, warmup_checks: with either above 1, the warm-up runs
+            ``warmup_restarts`` lineages of ``warmup_timesteps`` steps each, scored after
+            each of ``warmup_checks`` chunks by the share of agents at their goals in the
+            nominal game (no constraint is known yet), and keeps the best chunk (a lineage
+            can strand an agent on a wall for good, and its visits become false
+            constraints; docs/drones.md).
         init_reward_weights, init_multiplier, init_cost_weights: ``η(0)``, ``ω_c(0)``
             (the trainer's, the same numbers).
         final_timesteps, final_checks, final_restarts, final_score: the last solve on
@@ -116,7 +122,8 @@ class SACTask:
     def __init__(self, *, solver, demos, split: Sequence[int], seed: int,
                  true_constraints: Any = None, eval_episodes: int = 100,
                  eval_action: str = "mean", timesteps: int, n_eval_episodes: int = 10,
-                 warmup_timesteps: int = 0, init_reward_weights: float = 1.0,
+                 warmup_timesteps: int = 0, warmup_restarts: int = 1, warmup_checks: int = 1,
+                 init_reward_weights: float = 1.0,
                  init_multiplier: float = -1.0, init_cost_weights: float = 0.0,
                  final_timesteps: int | None = None, final_checks: int = 1,
                  final_restarts: int = 1, final_score: str = "penalised_return",
@@ -155,6 +162,11 @@ class SACTask:
         self.timesteps = check_int("timesteps", timesteps, 0)
         self.n_eval_episodes = check_int("n_eval_episodes", n_eval_episodes)
         self.warmup_timesteps = check_int("warmup_timesteps", warmup_timesteps, 0)
+        self.warmup_restarts = check_int("warmup_restarts", warmup_restarts)
+        self.warmup_checks = check_int("warmup_checks", warmup_checks)
+        if self.warmup_timesteps and self.warmup_checks > self.warmup_timesteps:
+            raise ValueError(f"warmup_checks={warmup_checks} exceeds warmup_timesteps="
+                             f"{warmup_timesteps}: each scored chunk needs a step.")
         self.eta0 = torch.full((solver.l_r + 1,), check_finite("init_reward_weights",
                                                           init_reward_weights),
                                dtype=torch.float64)
@@ -242,7 +254,13 @@ class SACTask:
         deterministic, so a resumed run warms up to the same state)."""
         if not self._warm and self.warmup_timesteps:
             t0 = time.perf_counter()
-            sol = self.base.solve(self.eta0, self.cw0, self.warmup_timesteps)
+            if self.warmup_restarts == 1 and self.warmup_checks == 1:
+                sol = self.base.solve(self.eta0, self.cw0, self.warmup_timesteps)
+            else:  # no constraint known yet: "success" is reaching the goals
+                sol = self.base.solve_keeping_best(
+                    self.eta0, self.cw0, self.warmup_timesteps, checks=self.warmup_checks,
+                    restarts=self.warmup_restarts, deterministic=self.eval_action == "mean",
+                    constraints=torch.zeros(self.base.l_c, dtype=torch.bool))
             print(f"SAC warm-up: {self.warmup_timesteps} steps on η(0) in "
                   f"{time.perf_counter() - t0:.0f} s; in the nominal game "
                   f"{self.warmup_summary(sol)}", flush=True)
