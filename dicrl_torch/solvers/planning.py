@@ -133,7 +133,7 @@ class CrossEntropyPlanner:
 
     def __init__(self, *, step_fn: Callable, reward_fn: Callable, forbidden_fn: Callable,
                  terminal_fn: Callable, action_shape: tuple[int, ...], gamma: float,
-                 horizon: int = 30, knot: int = 5, samples: int = 128, iterations: int = 3,
+                 horizon: int = 30, knot: int = 5, samples: int = 256, iterations: int = 4,
                  elites: int = 25, init_std: float = 0.6,
                  seed: int | Sequence[int] = 0) -> None:
         for name, value in (("horizon", horizon), ("knot", knot), ("samples", samples),
