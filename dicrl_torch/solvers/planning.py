@@ -165,7 +165,7 @@ class CrossEntropyPlanner:
         return len(self.rngs)
 
     def reset(self) -> None:
-        """Forget every problem's previous plan (at the start of its episode)."""
+        """Forget every problem's previous plan (before a new set of episodes)."""
         self._mean = np.zeros((self.problems, self.horizon // self.knot, *self.action_shape))
         self._held = np.zeros(self.problems, dtype=np.int64)  # steps the first action held
 
