@@ -2,8 +2,8 @@
 
     .venv/bin/python experiments/measure_planner.py                      # table2, 40 episodes
     .venv/bin/python experiments/measure_planner.py --episodes 16 experiment=table2_quick
-    .venv/bin/python experiments/measure_planner.py solver.planner.samples=256 \\
-        solver.planner.iterations=4
+    .venv/bin/python experiments/measure_planner.py solver.planner.samples=128 \\
+        solver.planner.iterations=3
 
 Builds the configured drone task (Hydra overrides as for ``train.py``; default
 ``experiment=table2``), gives its planner the true constraint set and a door-seeking reward

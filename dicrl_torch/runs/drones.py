@@ -86,14 +86,14 @@ class DroneTask(SACTask):
                          true_constraints=cost_basis.true_constraints().numpy(),
                          final_score=final_score, start_states=start_support(), **settings)
         self.reward_basis, self.cost_basis = reward_basis, cost_basis
-        if self.eval_policy == "plan" and not callable(getattr(cost_basis, "dilated", None)):
-            # A plan is refused when it enters a learned constraint: that needs features
-            # that are 0 outside their region (cells), which can be grown by the margin.
-            raise ValueError(
-                f"eval_policy='plan' needs a cost basis of cells that can be grown by a margin "
-                f"(dilated(margin), e.g. CellOccupancyCostBasis); {type(cost_basis).__name__} "
-                f"has none: set solver.eval_policy=sac.")
         if self.eval_policy == "plan":
+            if not callable(getattr(cost_basis, "dilated", None)):
+                # A plan is refused when it enters a learned constraint: that needs features
+                # that are 0 outside their region (cells), which can be grown by the margin.
+                raise ValueError(
+                    f"eval_policy='plan' needs a cost basis of cells that can be grown by a "
+                    f"margin (dilated(margin), e.g. CellOccupancyCostBasis); "
+                    f"{type(cost_basis).__name__} has none: set solver.eval_policy=sac.")
             plan = {**PLANNER_DEFAULTS, **self.planner_settings}
             if not plan["margin"] + plan["grid_step"] / 2 < 0.5:
                 # grid_values forbids a centre whose cell grown by both touches a learned one
