@@ -67,6 +67,9 @@ def test_a_killed_run_resumes_to_the_uninterrupted_results(tmp_path, game, unint
     resumed = run(game, tmp_path, "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "resuming from" in resumed.stdout
+    # The warm-up is the crashed run's, loaded rather than trained again.
+    assert "SAC warm-up loaded from" in resumed.stdout
+    assert "SAC warm-up: " not in resumed.stdout
     assert_same(tmp_path, uninterrupted)
 
 
@@ -76,4 +79,17 @@ def test_one_process_per_learner_gives_the_simulated_results(tmp_path, game, uni
     out = run(game, tmp_path, "comm=distributed")
     assert out.returncode == 0, out.stderr[-3000:]
     assert "starting 2 learner processes" in out.stdout
+    # C-ICRL, in this process, starts from the learners' warm-up file.
+    assert "SAC warm-up loaded from" in out.stdout
+    assert_same(tmp_path, uninterrupted)
+
+
+def test_a_warm_up_file_of_another_config_is_trained_again(tmp_path, game, uninterrupted):
+    """A run directory reused under other settings: the old warm-up file is ignored and
+    replaced, and the run is the uninterrupted one of its own config."""
+    first = run(game, tmp_path, "seed=1")
+    assert first.returncode == 0, first.stderr[-3000:]
+    again = run(game, tmp_path)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "SAC warm-up: " in again.stdout and "loaded from" not in again.stdout
     assert_same(tmp_path, uninterrupted)

@@ -28,6 +28,8 @@ Nothing here reads a config.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -43,6 +45,7 @@ from dicrl_torch.checks import check_finite, check_int
 from dicrl_torch.demos import partition_demonstrations
 from dicrl_torch.demos.continuous import save_continuous_demonstrations
 from dicrl_torch.envs.parallel import agg_axes, axes_image
+from dicrl_torch.io import atomic_write
 from dicrl_torch.metrics import false_negative_rate, false_positive_rate, learned_constraints
 
 __all__ = ["EVAL_ACTIONS", "FINAL_SCORES", "GREEDY_BASELINE", "SACTask", "derived_seed",
@@ -54,6 +57,8 @@ EVAL_POLICIES: tuple[str, ...] = ("sac", "plan")
 on its learned game with the nominal model (a task with :meth:`SACTask.make_planner`)."""
 FINAL_SCORES: tuple[str, ...] = ("penalised_return", "learned_success")
 GREEDY_BASELINE = "M(C)E-greedy"
+WARMUP_FILE = "warmup.pt"
+"""The run directory's file of the SAC warm-up (:meth:`SACTask.bind_run_dir`)."""
 
 
 def derived_seed(seed: int, *keys: int) -> int:
@@ -217,6 +222,8 @@ class SACTask:
         self.demos = demos
         self.shards = list(partition_demonstrations(demos, self.split))
         self._warm = False
+        self._warmup_file: Path | None = None  # bind_run_dir
+        self._warmup_key: str | None = None
         self._paths: list[np.ndarray] = []  # rollouts of the row evaluated last (its map)
         self._greedy: dict[str, SACGreedyConstraintInference] = {}
 
@@ -249,21 +256,52 @@ class SACTask:
         return (f"{float(solution.reached.double().mean()):.2f} of the agents reach their "
                 f"goal and {solution.violation_rate:.2f} cross a true constraint")
 
+    def bind_run_dir(self, out: Path, training_config: dict) -> None:
+        """Keep the warm-up's solver in ``out/warmup.pt``, keyed by the run's
+        ``training_config``: the processes of one run (the learners of ``comm=distributed``,
+        then the process that runs C-ICRL) and a resumed run load it instead of training
+        it again. A file of another config is ignored and replaced."""
+        key = json.dumps(training_config, sort_keys=True, default=str)
+        self._warmup_file = Path(out) / WARMUP_FILE
+        self._warmup_key = hashlib.sha256(key.encode()).hexdigest()
+
+    def _load_warmup(self) -> str | None:
+        """Load the bound run directory's warm-up into the base solver; its summary
+        line, or None where there is none of this run's config."""
+        path = self._warmup_file
+        if path is None or not path.is_file():
+            return None
+        saved = torch.load(path, weights_only=True)  # tensors and plain values only
+        if not isinstance(saved, dict) or saved.get("key") != self._warmup_key:
+            return None
+        self.base.load_state_dict(saved["solver"])
+        return saved["summary"]
+
     def _warmed_base(self):
-        """The base solver after its warm-up on ``η(0), ω_c(0)`` (once per process; it is
-        deterministic, so a resumed run warms up to the same state)."""
+        """The base solver after its warm-up on ``η(0), ω_c(0)`` (once per process, or
+        loaded from the run directory, :meth:`bind_run_dir`; it is deterministic, so
+        either way every process starts from the same state)."""
         if not self._warm and self.warmup_timesteps:
             t0 = time.perf_counter()
-            if self.warmup_restarts == 1 and self.warmup_checks == 1:
-                sol = self.base.solve(self.eta0, self.cw0, self.warmup_timesteps)
-            else:  # no constraint known yet: "success" is reaching the goals
-                sol = self.base.solve_keeping_best(
-                    self.eta0, self.cw0, self.warmup_timesteps, checks=self.warmup_checks,
-                    restarts=self.warmup_restarts, deterministic=self.eval_action == "mean",
-                    constraints=torch.zeros(self.base.l_c, dtype=torch.bool))
-            print(f"SAC warm-up: {self.warmup_timesteps} steps on η(0) in "
-                  f"{time.perf_counter() - t0:.0f} s; in the nominal game "
-                  f"{self.warmup_summary(sol)}", flush=True)
+            summary = self._load_warmup()
+            if summary is not None:
+                print(f"SAC warm-up loaded from {self._warmup_file} ({summary})", flush=True)
+            else:
+                if self.warmup_restarts == 1 and self.warmup_checks == 1:
+                    sol = self.base.solve(self.eta0, self.cw0, self.warmup_timesteps)
+                else:  # no constraint known yet: "success" is reaching the goals
+                    sol = self.base.solve_keeping_best(
+                        self.eta0, self.cw0, self.warmup_timesteps, checks=self.warmup_checks,
+                        restarts=self.warmup_restarts, deterministic=self.eval_action == "mean",
+                        constraints=torch.zeros(self.base.l_c, dtype=torch.bool))
+                summary = (f"{self.warmup_timesteps} steps on η(0) in "
+                           f"{time.perf_counter() - t0:.0f} s; in the nominal game "
+                           f"{self.warmup_summary(sol)}")
+                print(f"SAC warm-up: {summary}", flush=True)
+                if self._warmup_file is not None:
+                    state = {"key": self._warmup_key, "summary": summary,
+                             "solver": self.base.state_dict()}
+                    atomic_write(self._warmup_file, lambda f: torch.save(state, f))
         self._warm = True
         return self.base
 

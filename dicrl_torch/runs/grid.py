@@ -284,6 +284,9 @@ class GridTask:
         self.make_baselines({}, progress=False)  # a baseline that cannot run fails now
         print(self.describe())
 
+    def bind_run_dir(self, out: Path, training_config: dict) -> None:
+        """Nothing to keep: the exact solver has no pre-training."""
+
     def learner_model(self, local_ids: Sequence[int], shards: Sequence, stream: int
                       ) -> TabularLearnerModel:
         """One stateless exact model serves every learner."""

@@ -55,6 +55,11 @@ class Task(Protocol):
     def announce(self, out: Path) -> None:
         """Printed (and the demonstrations saved) once per run, by the main process."""
 
+    def bind_run_dir(self, out: Path, training_config: dict) -> None:
+        """The run directory, in every process of the run before it trains: a task may
+        keep there what it computes once per run (the SAC warm-up), keyed by the run's
+        ``training_config``."""
+
     def learner_model(self, local_ids: Sequence[int], shards: Sequence, stream: int):
         """The learner model of a trainer over ``local_ids`` holding ``shards`` (stream 0:
         D-ICRL, 1: C-ICRL)."""
@@ -296,6 +301,7 @@ def finish(task: Task, settings: RunSettings, spec: TrainerSpec, *, out: Path,
     Returns:
         ``results.json``'s record.
     """
+    task.bind_run_dir(out, settings.training_config)
     methods: dict = {}
     histories: dict = {}
     if d_icrl is not None:
@@ -369,6 +375,7 @@ def run_all_in_one(task: Task, settings: RunSettings, spec: TrainerSpec, *, out:
         # The checkpoint is read (and checked against the config) before any computation.
         ckpt = Checkpoints(out / "checkpoint.pt", settings.resume,
                            config=settings.training_config)
+        task.bind_run_dir(out, settings.training_config)
         task.announce(out)
         d_icrl = None
         if settings.run_d_icrl:
@@ -433,6 +440,7 @@ def run_learner(comm, task: Task, settings: RunSettings, spec: TrainerSpec, *, o
     """Learner ``comm.rank``: train on its own shard, evaluate its row, write it to
     ``learner_rows/rank<r>.json`` and wait for the others."""
     rank = comm.rank
+    task.bind_run_dir(out, settings.training_config)
     shard = task.shards[rank]
     if shard is None:
         raise ValueError(f"Learner {rank} holds no demonstrations in this process.")
