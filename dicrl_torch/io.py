@@ -40,8 +40,41 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[BinaryIO], Any])
     return path
 
 
+def _key(key: Any) -> str:
+    """A dict key as ``json.dumps`` writes it (bools and None as JSON literals)."""
+    if isinstance(key, str):
+        return key
+    if key is None or isinstance(key, bool):
+        return json.dumps(key)
+    if isinstance(key, int | float):
+        return json.dumps(key)
+    raise TypeError(f"keys must be str, int, float, bool or None, not {type(key).__name__}")
+
+
+def dumps_compact(obj: Any, indent: int = 1) -> str:
+    """``obj`` as JSON indented like ``json.dumps(obj, indent=indent)``, except that a list
+    of scalars stays on one line: a learner's 201 cost weights per outer iteration are one
+    line each, not 201. ``json.loads`` gives back what ``json.dumps`` would have."""
+
+    def dump(value: Any, depth: int) -> str:
+        if isinstance(value, dict) and value:
+            pad = " " * (indent * (depth + 1))
+            items = (f"{pad}{json.dumps(_key(k))}: {dump(v, depth + 1)}"
+                     for k, v in value.items())
+            return "{\n" + ",\n".join(items) + "\n" + " " * (indent * depth) + "}"
+        if isinstance(value, list | tuple) and value and not all(
+                v is None or isinstance(v, str | int | float) for v in value):
+            pad = " " * (indent * (depth + 1))
+            items = (pad + dump(v, depth + 1) for v in value)
+            return "[\n" + ",\n".join(items) + "\n" + " " * (indent * depth) + "]"
+        return json.dumps(value)
+
+    return dump(obj, 0)
+
+
 def write_json(path: str | os.PathLike[str], obj: Any) -> Path:
-    """``obj`` as indented JSON (UTF-8), atomically; serialised before anything is
-    opened, so a value JSON cannot hold writes nothing."""
-    data = json.dumps(obj, indent=1).encode()
+    """``obj`` as indented JSON (UTF-8; lists of scalars on one line,
+    :func:`dumps_compact`), atomically; serialised before anything is opened, so a value
+    JSON cannot hold writes nothing."""
+    data = dumps_compact(obj).encode()
     return atomic_write(path, lambda f: f.write(data))

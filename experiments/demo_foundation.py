@@ -10,7 +10,6 @@ This is the only place besides the other entry points that reads a config.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from tqdm.auto import tqdm
 from dicrl_torch.demos import partition_demonstrations, save_demonstrations
 from dicrl_torch.demos.features import local_estimates
 from dicrl_torch.envs.gridworld_env import render_grid
+from dicrl_torch.io import write_json
 from dicrl_torch.metrics import rollout_true_cmg
 from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 
@@ -73,7 +73,7 @@ def main(cfg: DictConfig) -> None:
             "cost_accrual_nonzero": int(
                 (local_estimates(cost_basis(), shard, model.gamma) > 0).sum()),
         }
-    (out / "local_estimates.json").write_text(json.dumps(estimates, indent=1))
+    write_json(out / "local_estimates.json", estimates)
 
     true_cells = [layout.cell(c) for c in layout.obstacles]
     for name, heat in figures.items():
@@ -87,7 +87,7 @@ def main(cfg: DictConfig) -> None:
 
     results = {"experiment": "demo_foundation", "wall_s": time.perf_counter() - t_start,
                "methods": rows}
-    (out / "results.json").write_text(json.dumps(results, indent=1))
+    write_json(out / "results.json", results)
     print(f"\n{'':26s}{'CR':>20s}{'CVR':>8s}")
     for name, row in rows.items():
         r = row["learners"][0]

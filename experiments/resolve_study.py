@@ -46,7 +46,9 @@ def load(run: Path, method: str):
     with contextlib.redirect_stdout(sys.stderr):  # its "resuming from" line: not a result
         states = Checkpoints(run / "checkpoint.pt", resume=True).states(method)
     if not states:
-        sys.exit(f"error: {run / 'checkpoint.pt'} holds no {method} state.")
+        ranks = " (a comm=distributed run keeps each D-learner in checkpoint_rank<v>.pt; " \
+                "rerun it with comm=simulated)" if (run / "checkpoint_rank0.pt").exists() else ""
+        sys.exit(f"error: {run / 'checkpoint.pt'} holds no {method} state{ranks}.")
     if method == "D-ICRL":
         trainer = make_trainer(task, spec, task.shards, SimulatedCommunicator(len(task.split)),
                                task.split, stream=0, progress=False)

@@ -124,6 +124,16 @@ def _silent_body(rank, world_size, init_method, timeout_s):
         raise
 
 
+def _late_body(rank, world_size, init_method, timeout_s, late_s, wait_s):
+    """Rank 1 reaches the barrier ``late_s`` after rank 0; the barrier waits ``wait_s``
+    (None: the communicator's ``timeout_s``)."""
+    with _comm(rank, world_size, init_method, timeout_s=timeout_s) as comm:
+        if rank == 1:
+            time.sleep(late_s)
+        comm.barrier(timeout_s=wait_s)
+    return rank
+
+
 def _never_joined_body(rank, world_size, init_method, claimed_world_size, timeout_s):
     t0 = time.monotonic()
     try:
@@ -241,6 +251,16 @@ def test_a_learner_that_dies_fails_fast():
     assert "rank 2" in str(err)
     # gloo sees the closed connection at once: far below the 30 s collective timeout
     assert elapsed < COMM_TIMEOUT_S, f"took {elapsed:.1f} s"
+
+
+def test_the_last_barrier_can_wait_longer_than_an_exchange():
+    """A learner late by more than the exchanges' timeout (its evaluation took longer):
+    the plain barrier gives up, naming the failure; one given a longer bound waits."""
+    assert spawn_learners(_late_body, 2, args=(2.0, 4.0, 30.0), timeout_s=60) == [0, 1]
+    with pytest.raises(LearnerProcessError) as info:
+        spawn_learners(_late_body, 2, args=(2.0, 4.0, None), timeout_s=60, grace_s=10)
+    assert info.value.failures[0].startswith("PeerFailureError")
+    assert "barrier failed" in info.value.failures[0]
 
 
 @pytest.mark.slow  # ~14 s; the dead learner above covers the common case

@@ -210,7 +210,7 @@ def test_a_margin_needs_a_cost_basis_that_can_grow():
         drone_task(_compose("solver.planner.grid_step=1.0"))
 
 
-TINY = ["experiment=table2_quick", "env.arena.max_steps=20", "eval_episodes=2",
+TINY = ["experiment=table2_quick", "comm=simulated", "env.arena.max_steps=20", "eval_episodes=2",
         "solver.warmup_timesteps=60", "solver.timesteps=20", "solver.n_eval_episodes=1",
         "solver.final_timesteps=40", "solver.final_checks=2", "solver.final_restarts=2",
         "solver.final_score=learned_success", "solver.eval_policy=sac",

@@ -417,9 +417,13 @@ def test_run_d_icrl_false_is_refused_where_it_cannot_run():
     with pytest.raises(config_checks.ConfigError, match="greedy baseline without its reward"):
         config_checks.check_config(compose_train("experiment=table2_quick",
                                                  "algo.run_d_icrl=false"))
-    # without the baseline the arena's C-ICRL alone runs
+    # without the baseline the arena's C-ICRL alone runs, in one process (the drone
+    # configs ship comm=distributed, which has no learner process to start then)
     config_checks.check_config(compose_train("experiment=table2_quick", "algo.run_d_icrl=false",
-                                             "baselines=none"))
+                                             "baselines=none", "comm=simulated"))
+    with pytest.raises(config_checks.ConfigError, match="use comm=simulated"):
+        config_checks.check_config(compose_train("experiment=table2_quick",
+                                                 "algo.run_d_icrl=false", "baselines=none"))
     with pytest.raises(config_checks.ConfigError, match="algo.run_d_icrl='no' is invalid"):
         config_checks.check_config(compose_train(*TINY, "algo.run_d_icrl=no"))
 

@@ -225,13 +225,17 @@ class DistributedCommunicator:
         return [json.loads(bytes(rows[r, :int(size[r, 0])].tolist()))
                 for r in range(self.n_learners)]
 
-    def barrier(self) -> None:
-        """Wait for every learner (or raise :class:`PeerFailureError` after ``timeout_s``)."""
+    def barrier(self, timeout_s: float | None = None) -> None:
+        """Wait for every learner (or raise :class:`PeerFailureError` after ``timeout_s``,
+        default the communicator's; a longer one needs the gloo backend, whose
+        ``monitored_barrier`` takes its own bound)."""
         try:
             if self.backend == "nccl":
                 dist.barrier(device_ids=[self.device.index])
-            else:
+            elif timeout_s is None:
                 dist.barrier()
+            else:
+                dist.monitored_barrier(timeout=datetime.timedelta(seconds=float(timeout_s)))
         except Exception as e:
             raise PeerFailureError(f"Learner {self.rank} of {self.n_learners}: barrier failed "
                                    f"({type(e).__name__}: {_first_line(e)}). {_FIX}") from e

@@ -34,6 +34,9 @@ from dicrl_torch.runs.checkpoints import Checkpoints, progress_of
 from dicrl_torch.runs.results import print_table, print_timings, results_record
 from dicrl_torch.runs.signals import Interrupted, StopOnSignal, stoppable
 
+FINAL_WAIT_S = 6 * 3600.0
+"""Seconds a learner process waits, after writing its row, for the slowest learner's."""
+
 
 class Task(Protocol):
     """What the runner asks of an environment (grid world, drone arena, ...).
@@ -459,7 +462,10 @@ def run_learner(comm, task: Task, settings: RunSettings, spec: TrainerSpec, *, o
     write_json(out / "learner_rows" / f"rank{rank}.json", {
         "run_id": run_id, "rank": rank, "world_size": comm.n_learners, "row": rows[0],
         "history": trainer.history, "disagreement": gap})
-    comm.barrier()
+    # The learners' evaluations can differ by minutes (100 planned drone episodes each),
+    # far beyond the exchanges' timeout; a learner that dies meanwhile is noticed by the
+    # spawning process (or torchrun), which stops the others.
+    comm.barrier(timeout_s=FINAL_WAIT_S)
 
 
 def merge_learner_rows(out: Path, n_learners: int, run_id: str) -> dict:
