@@ -44,9 +44,7 @@ def _key(key: Any) -> str:
     """A dict key as ``json.dumps`` writes it (bools and None as JSON literals)."""
     if isinstance(key, str):
         return key
-    if key is None or isinstance(key, bool):
-        return json.dumps(key)
-    if isinstance(key, int | float):
+    if key is None or isinstance(key, bool | int | float):
         return json.dumps(key)
     raise TypeError(f"keys must be str, int, float, bool or None, not {type(key).__name__}")
 

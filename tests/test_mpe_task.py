@@ -453,3 +453,34 @@ def test_warmup_keeps_the_best_scored_chunk_of_several_lineages(capsys):
         tiny_task(warmup_restarts=0)
     with pytest.raises(ValueError, match="warmup_checks=100 exceeds warmup_timesteps=60"):
         tiny_task(warmup_checks=100)
+
+
+def test_the_warm_up_is_kept_in_the_run_directory(tmp_path, capsys):
+    """bind_run_dir: the first task trains the warm-up and saves it; another task of the
+    same config loads it into exactly the trained state; another config, or an unreadable
+    file, trains it again (the message names the file)."""
+    from test_sac_state import assert_same_solution, assert_same_solver
+
+    config = {"seed": 0, "solver.warmup_timesteps": 60}
+    first = tiny_task()
+    first.bind_run_dir(tmp_path, config)
+    trained = first._warmed_base()
+    assert (tmp_path / "warmup.pt").is_file()
+    again = tiny_task()
+    again.bind_run_dir(tmp_path, config)
+    loaded = again._warmed_base()
+    assert "SAC warm-up loaded from" in capsys.readouterr().out
+    assert_same_solver(loaded, trained)
+    eta, cw = first.eta0.numpy(), first.cw0.numpy()
+    assert_same_solution(loaded.solve(eta, cw, 20), trained.solve(eta, cw, 20))
+
+    other = tiny_task()
+    other.bind_run_dir(tmp_path, {**config, "seed": 1})
+    other._warmed_base()
+    assert "SAC warm-up: 60 steps" in capsys.readouterr().out
+    (tmp_path / "warmup.pt").write_bytes(b"not a torch file")
+    broken = tiny_task()
+    broken.bind_run_dir(tmp_path, config)
+    broken._warmed_base()
+    out = capsys.readouterr().out
+    assert "warmup.pt is unreadable" in out and "SAC warm-up: 60 steps" in out

@@ -271,11 +271,17 @@ class SACTask:
         path = self._warmup_file
         if path is None or not path.is_file():
             return None
-        saved = torch.load(path, weights_only=True)  # tensors and plain values only
-        if not isinstance(saved, dict) or saved.get("key") != self._warmup_key:
+        try:
+            saved = torch.load(path, weights_only=True)  # tensors and plain values only
+            if not isinstance(saved, dict) or saved.get("key") != self._warmup_key:
+                return None
+            summary = str(saved["summary"])
+            self.base.load_state_dict(saved["solver"])  # checked before anything changes
+            return summary
+        except Exception as e:  # noqa: BLE001 - any unreadable file: train it again
+            print(f"SAC warm-up: {path} is unreadable ({type(e).__name__}: {e}); training "
+                  f"it again.", flush=True)
             return None
-        self.base.load_state_dict(saved["solver"])
-        return saved["summary"]
 
     def _warmed_base(self):
         """The base solver after its warm-up on ``η(0), ω_c(0)`` (once per process, or
