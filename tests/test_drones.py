@@ -39,6 +39,7 @@ from dicrl_torch.envs.drones import (
     in_obstacle,
     joint_obs_to_state,
     joint_step,
+    nominal_step,
     obstacle_cell_mask,
     render_arena,
 )
@@ -250,6 +251,31 @@ def test_joint_step_numpy_torch_and_batch_agree():
             np.testing.assert_array_equal(one.violated, r_np.violated[b])
         # Inactive drones do not move.
         np.testing.assert_array_equal(r_np.state[~active], state[~active])
+
+
+def test_nominal_step_equals_the_nominal_joint_step_bit_for_bit():
+    # The planner's model must be the nominal game exactly: same states (signed zeros
+    # too) and the same drones still flying, arrivals and walls included.
+    rng = np.random.default_rng(1)
+    B = 512
+    pos = rng.uniform(0.0, ROOM_SIZE, size=(B, 2, 2))
+    pos[: B // 2, :, 1] = rng.uniform(ROOM_SIZE - 0.6, ROOM_SIZE, size=(B // 2, 2))  # doors
+    state = np.concatenate([pos, rng.uniform(-1.5, 1.5, size=(B, 2, 2))], -1)
+    cmd = rng.uniform(-1.3, 1.3, size=(B, 2, 2))
+    active = rng.random((B, 2)) < 0.8
+    noise = 0.02 * rng.standard_normal((B, 2, 2))
+    for dyn in (DroneDynamics(), DroneDynamics(command_set="disc", max_speed=1.5)):
+        for args in ((state, cmd, active, None), (state, cmd, active, noise)):
+            for x in (args, tuple(None if a is None else torch.as_tensor(a) for a in args)):
+                full = joint_step(*x, dynamics=dyn, constrained=False)
+                lean_state, lean_active = nominal_step(*x, dynamics=dyn)
+                assert (np.asarray(full.reached).any()
+                        and not np.asarray(full.active).all())  # arrivals were tested
+                np.testing.assert_array_equal(np.asarray(lean_state), np.asarray(full.state))
+                np.testing.assert_array_equal(np.signbit(np.asarray(lean_state)),
+                                              np.signbit(np.asarray(full.state)))
+                np.testing.assert_array_equal(np.asarray(lean_active),
+                                              np.asarray(full.active))
 
 
 # ---- constraints ------------------------------------------------------------------

@@ -382,10 +382,12 @@ class SACTask:
         raise NotImplementedError(f"{type(self).__name__} has no model to plan in.")
 
     def evaluate_planned(self, solver, eta: np.ndarray, cost_weights: np.ndarray,
-                         constraints: np.ndarray, seed: int) -> dict:
+                         constraints: np.ndarray, seed: int, progress: str | None = None
+                         ) -> dict:
         """The true-game row of planning on the learned game: ``eval_episodes`` episodes on
         the evaluation's common starts, each its own planning problem with its own random
-        stream, planned together (``SR_plan``, ``CVR_plan``; SAC's columns None)."""
+        stream, planned together (``SR_plan``, ``CVR_plan``; SAC's columns None);
+        ``progress`` labels a bar over the finished episodes."""
         planner = self.make_planner(eta, cost_weights, constraints,
                                     [derived_seed(seed, 5, k) for k in range(self.eval_episodes)])
 
@@ -393,7 +395,7 @@ class SACTask:
             return planner.act(states, active, episodes).reshape(len(episodes), -1)
 
         ev = solver.evaluate(self.eval_episodes, true_game=True, trajectories=True,
-                             rng=self.evaluation_rng(), actor=actor)
+                             rng=self.evaluation_rng(), actor=actor, progress=progress)
         self._paths = list(ev.paths)
         return {"CR_mean": None, "CR_std": None, "RFD": None, "SR_mean": None,
                 "CVR_mean": None, "SR_sampled": None, "CVR_sampled": None,
@@ -409,7 +411,9 @@ class SACTask:
         if self.eval_policy == "plan":
             row = self.evaluate_planned(solver, np.asarray(eta, dtype=np.float64),
                                         np.asarray(cw, dtype=np.float64), mask,
-                                        derived_seed(self.seed, 4, i))
+                                        derived_seed(self.seed, 4, i),
+                                        progress=self._planning_label(trainer, i) if progress
+                                        else None)
             row.update(self.rates(mask), multiplier=float(eta[-1]),
                        reward_weights=eta[:-1].tolist(), policy_timesteps=None,
                        final_checks=None)
@@ -425,6 +429,13 @@ class SACTask:
                    reward_weights=eta[:-1].tolist(), policy_timesteps=kept.timesteps,
                    final_checks=solver.last_checks)
         return row
+
+    @staticmethod
+    def _planning_label(trainer: DICRL, i: int) -> str:
+        """The planned evaluation's bar: which learner of how many (C-ICRL: the one)."""
+        if trainer.n_learners == 1:
+            return "planning the centralized learner"
+        return f"planning learner {trainer.local[i] + 1} of {trainer.n_learners}"
 
     def evaluation_settings(self) -> dict[str, Any]:
         return {"threshold": self.threshold, "eval_episodes": self.eval_episodes,

@@ -29,7 +29,13 @@ import numpy as np
 import torch
 
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations, save_drone_demonstrations
-from dicrl_torch.envs.drones import ROOM_SIZE, in_own_door, joint_step, render_arena, start_support
+from dicrl_torch.envs.drones import (
+    ROOM_SIZE,
+    in_own_door,
+    nominal_step,
+    render_arena,
+    start_support,
+)
 from dicrl_torch.runs.continuous import GREEDY_BASELINE, SACTask, derived_seed
 from dicrl_torch.solvers.planning import CrossEntropyPlanner, grid_values
 
@@ -104,17 +110,18 @@ class DroneTask(SACTask):
     # ------------------------------------------------------------------ planning
     def make_planner(self, eta: np.ndarray, cost_weights: np.ndarray, constraints: np.ndarray,
                      seeds: Sequence[int]) -> CrossEntropyPlanner:
-        """A cross-entropy planner in the nominal arena (the learner's env: its dynamics
-        and collision radius) on the learned reward ``ω_r·φ_r + λ ω_c·φ_c``, never
-        entering a learned cell or the proximity grown by ``margin``; its terminal value is
-        each drone's :func:`~dicrl_torch.solvers.planning.grid_values` (alone in the
-        room, the learned cells forbidden, its door absorbing), summed. One planning
-        problem (episode) per seed."""
+        """A cross-entropy planner in the nominal arena (the learner's env's dynamics:
+        :func:`~dicrl_torch.envs.drones.nominal_step`) on the learned reward
+        ``ω_r·φ_r + λ ω_c·φ_c``, never entering a learned cell or the proximity grown by
+        ``margin``; its terminal value is each drone's
+        :func:`~dicrl_torch.solvers.planning.grid_values` (alone in the room, the learned
+        cells forbidden, its door absorbing), summed. One planning problem (episode) per
+        seed."""
         settings = {**PLANNER_DEFAULTS, **self.planner_settings}
         if getattr(self, "_nominal_model", None) is None:  # one env read, not one per episode
             arena = self.base.env_factory(constrained=False).arena
-            self._nominal_model = (arena.dynamics, arena.proximity_radius)
-        dynamics, radius = self._nominal_model
+            self._nominal_model = arena.dynamics
+        dynamics = self._nominal_model
         wr, lam = eta[:-1], float(eta[-1])
         forbidden = constraints.astype(np.float64)
         grown = (self.cost_basis.dilated(settings["margin"]) if settings["margin"]
@@ -123,9 +130,7 @@ class DroneTask(SACTask):
         step = settings["grid_step"]
 
         def model(states, active, actions):
-            res = joint_step(states, actions, active, None, dynamics=dynamics,
-                             proximity_radius=radius, constrained=False)
-            return res.state, res.active
+            return nominal_step(states, actions, active, dynamics=dynamics)
 
         def reward(states):
             phi_r = self.reward_basis.compute(torch.as_tensor(states)).numpy()

@@ -650,7 +650,8 @@ class SACConstrainedSolver:
 
     def evaluate(self, n_episodes: int | None = None, *, deterministic: bool = False,
                  true_game: bool = False, rng: np.random.Generator | None = None,
-                 trajectories: bool = False, actor: Callable | None = None) -> SACSolution:
+                 trajectories: bool = False, actor: Callable | None = None,
+                 progress: str | None = None) -> SACSolution:
         """Roll out the current policy for ``n_episodes`` episodes and estimate the
         discounted feature sums (absorbing terminal, as in training).
 
@@ -673,6 +674,8 @@ class SACConstrainedSolver:
                 states, ``active`` the agents still flying (neither arrived nor, in the
                 true game, frozen); e.g. a planner per episode
                 (:mod:`dicrl_torch.solvers.planning`). ``deterministic`` is then unused.
+            progress: a tqdm bar over finished episodes with this label (e.g. for a
+                planner's minutes of rollouts), or None.
         """
         n = self.n_eval_episodes if n_episodes is None else n_episodes
         if not _is_int(n) or n < 1:
@@ -694,6 +697,10 @@ class SACConstrainedSolver:
         bonus = 1.0 / (1.0 - self.gamma) if self.absorbing else 1.0
         paths = [[np.array(info["state"])] for _, info in starts] if trajectories else None
         current = np.stack([np.array(info["state"], dtype=np.float64) for _, info in starts])
+        bar = None
+        if progress is not None:
+            from tqdm.auto import tqdm
+            bar = tqdm(total=n, desc=progress, unit="episode", leave=False)
         while alive.any():
             idx = np.flatnonzero(alive)
             if actor is None:
@@ -719,6 +726,11 @@ class SACConstrainedSolver:
             sums_r[idx] += w[:, None] * _features(self.reward_basis, states)
             sums_c[idx] += w[:, None] * _features(self.cost_basis, states)
             disc[idx] *= self.gamma
+            if bar is not None:
+                bar.update(int(len(idx) - alive[idx].sum()))
+                bar.set_postfix(step=int(lengths.max()), refresh=False)
+        if bar is not None:
+            bar.close()
         return SACSolution(
             reward_sums=torch.from_numpy(sums_r), cost_sums=torch.from_numpy(sums_c),
             lengths=torch.from_numpy(lengths), reached=torch.from_numpy(reached),
