@@ -707,3 +707,51 @@ def test_an_actor_drives_the_evaluation_as_the_policy_would():
         torch.testing.assert_close(plain.reward_sums, acted.reward_sums)
     assert seen[0] == ((3, 2, 4), (3, 2), (0, 1, 2))
     assert all(len(eps) == n[0] == m[0] for n, m, eps in seen)
+
+
+def test_progress_bars_count_every_step_and_change_no_number(monkeypatch):
+    """The warm-up's and the planned evaluation's bars (solve/solve_keeping_best/
+    evaluate with progress=...) reach their totals and leave the networks, the scores
+    and the rollouts those of the same calls without them."""
+    import contextlib
+
+    from dicrl_torch.solvers.sac import solver as solver_module
+
+    bars = []
+
+    class Recorder:
+        def __init__(self, label, total):
+            self.label, self.total, self.n = label, total, 0
+
+        def update(self, k):
+            self.n += k
+
+        def set_postfix(self, **kwargs):
+            pass
+
+    @contextlib.contextmanager
+    def recording_bar(label, total):
+        bars.append(Recorder(label, total) if label is not None else None)
+        yield bars[-1]
+
+    monkeypatch.setattr(solver_module, "_step_bar", recording_bar)
+    eta, wc = random_weights(np.random.default_rng(9))
+    plain, shown = make_solver(seed=9, learning_starts=50), make_solver(seed=9,
+                                                                        learning_starts=50)
+    a = plain.solve(eta, wc, 120, n_eval_episodes=2)
+    b = shown.solve(eta, wc, 120, n_eval_episodes=2, progress="warm-up")
+    torch.testing.assert_close(a.reward_sums, b.reward_sums, rtol=0, atol=0)
+    plain.solve_keeping_best(eta, wc, 60, checks=2, restarts=2, n_eval_episodes=2)
+    shown.solve_keeping_best(eta, wc, 60, checks=2, restarts=2, n_eval_episodes=2,
+                             progress="lineages")
+    assert [(bar.label, bar.total, bar.n) for bar in bars if bar is not None] == [
+        ("warm-up", 120, 120), ("lineages", 120, 120)]
+    assert [c["penalised_return"] for c in plain.last_checks] == \
+        [c["penalised_return"] for c in shown.last_checks]
+    for key, value in plain.model.policy.state_dict().items():
+        assert torch.equal(value, shown.model.policy.state_dict()[key]), key
+    x = plain.evaluate(3, true_game=True, rng=np.random.default_rng(1), trajectories=True)
+    y = shown.evaluate(3, true_game=True, rng=np.random.default_rng(1), trajectories=True,
+                       progress="planning")
+    for p, q in zip(x.paths, y.paths, strict=True):
+        np.testing.assert_array_equal(p, q)

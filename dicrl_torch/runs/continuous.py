@@ -283,23 +283,27 @@ class SACTask:
                   f"it again.", flush=True)
             return None
 
-    def _warmed_base(self):
+    def _warmed_base(self, progress: bool = False):
         """The base solver after its warm-up on ``η(0), ω_c(0)`` (once per process, or
         loaded from the run directory, :meth:`bind_run_dir`; it is deterministic, so
-        either way every process starts from the same state)."""
+        either way every process starts from the same state); ``progress``: a bar over
+        the warm-up's steps."""
         if not self._warm and self.warmup_timesteps:
             t0 = time.perf_counter()
             summary = self._load_warmup()
             if summary is not None:
                 print(f"SAC warm-up loaded from {self._warmup_file} ({summary})", flush=True)
             else:
+                label = "SAC warm-up" if progress else None
                 if self.warmup_restarts == 1 and self.warmup_checks == 1:
-                    sol = self.base.solve(self.eta0, self.cw0, self.warmup_timesteps)
+                    sol = self.base.solve(self.eta0, self.cw0, self.warmup_timesteps,
+                                          progress=label)
                 else:  # no constraint known yet: "success" is reaching the goals
                     sol = self.base.solve_keeping_best(
                         self.eta0, self.cw0, self.warmup_timesteps, checks=self.warmup_checks,
                         restarts=self.warmup_restarts, deterministic=self.eval_action == "mean",
-                        constraints=torch.zeros(self.base.l_c, dtype=torch.bool))
+                        constraints=torch.zeros(self.base.l_c, dtype=torch.bool),
+                        progress=label)
                 summary = (f"{self.warmup_timesteps} steps on η(0) in "
                            f"{time.perf_counter() - t0:.0f} s; in the nominal game "
                            f"{self.warmup_summary(sol)}")
@@ -315,7 +319,8 @@ class SACTask:
                       ) -> SACLearnerModel:
         """Each local learner owns a clone of the warmed-up solver, seeded per learner and
         per ``stream`` (0: D-ICRL, 1: C-ICRL), holding its own demonstrations."""
-        base = self._warmed_base()
+        # One bar per run: the process holding learner 1 shows it.
+        base = self._warmed_base(progress=0 in local_ids)
         solvers = [base.clone(derived_seed(self.seed, 2, stream, v)) for v in local_ids]
         for solver, shard in zip(solvers, shards, strict=True):
             solver.set_demonstrations(shard)  # its own episodes only (solver.demo_fraction)

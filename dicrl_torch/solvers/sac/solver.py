@@ -16,6 +16,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 from stable_baselines3 import SAC
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import DummyVecEnv
@@ -511,7 +512,8 @@ class SACConstrainedSolver:
 
     # ---- solving ------------------------------------------------------------------
     def solve(self, eta: Any, cost_weights: Any, timesteps: int, *,
-              n_eval_episodes: int | None = None) -> SACSolution:
+              n_eval_episodes: int | None = None, progress: str | None = None
+              ) -> SACSolution:
         """Continue training on the reward of ``(η, ω_c)``, then evaluate.
 
         Args:
@@ -519,18 +521,22 @@ class SACConstrainedSolver:
             cost_weights: ``[l_c]`` ``ω_c``.
             timesteps: further env steps (over all envs); 0 only evaluates.
             n_eval_episodes: rollouts for the estimates (default the solver's).
+            progress: a tqdm bar over the env steps with this label (e.g. a warm-up's
+                minutes), or None.
 
         Returns:
             The :class:`SACSolution` of the policy after training.
         """
-        self._train(eta, cost_weights, timesteps)
+        with _step_bar(progress, timesteps) as bar:
+            self._train(eta, cost_weights, timesteps, bar)
         return self.evaluate(n_eval_episodes,
                              deterministic=self.estimate_action == "mean")
 
     def solve_keeping_best(self, eta: Any, cost_weights: Any, timesteps: int, *, checks: int,
                            restarts: int = 1, n_eval_episodes: int | None = None,
                            deterministic: bool = False, constraints: Any = None,
-                           penalty_basis: Any = None) -> SACSolution:
+                           penalty_basis: Any = None, progress: str | None = None
+                           ) -> SACSolution:
         """Train ``timesteps`` in ``checks`` near-equal chunks and end with the networks
         whose policy scored the highest learned objective
         (:meth:`SACSolution.penalised_return`) after any chunk; with ``constraints``, the
@@ -560,6 +566,8 @@ class SACConstrainedSolver:
                 ``CellOccupancyCostBasis.dilated``) for this solve only
                 (:meth:`FeatureReplayBuffer.set_penalty_basis`); the scores and the
                 returned estimates keep the cost basis. None: the cost basis.
+            progress: a tqdm bar over every lineage's env steps with this label (the
+                best score so far beside it), or None.
 
         Returns:
             The best chunk's :class:`SACSolution` (its rollouts gave the score); this
@@ -583,8 +591,10 @@ class SACConstrainedSolver:
         # Set before the clones copy the buffer; every later solve trains on φ_c again.
         self.replay_buffer.set_penalty_basis(penalty_basis)
         try:
-            best, best_state = self._keep_best(eta, cost_weights, chunks, seeds, order,
-                                               n_eval_episodes, deterministic, constraints)
+            with _step_bar(progress, restarts * int(timesteps)) as bar:
+                best, best_state = self._keep_best(eta, cost_weights, chunks, seeds, order,
+                                                   n_eval_episodes, deterministic,
+                                                   constraints, bar)
         finally:
             self.replay_buffer.set_penalty_basis(None)
         self.model.policy.load_state_dict(best_state)
@@ -593,7 +603,8 @@ class SACConstrainedSolver:
 
     def _keep_best(self, eta: Any, cost_weights: Any, chunks: np.ndarray, seeds: np.ndarray,
                    order: list[int], n_eval_episodes: int | None, deterministic: bool,
-                   constraints: Any) -> tuple[SACSolution, dict[str, torch.Tensor]]:
+                   constraints: Any, bar: Any = None
+                   ) -> tuple[SACSolution, dict[str, torch.Tensor]]:
         """:meth:`solve_keeping_best`'s lineages: the best chunk's solution and policy
         state (restarts in ``order``, 0 this solver, the others clones of ``seeds``)."""
         best, best_key, best_state = None, None, None
@@ -601,7 +612,7 @@ class SACConstrainedSolver:
         for r in order:
             solver = self if r == 0 else self.clone(int(seeds[r - 1]))
             for k, steps in enumerate(chunks):
-                solver._train(eta, cost_weights, int(steps))
+                solver._train(eta, cost_weights, int(steps), bar)
                 solution = solver.evaluate(n_eval_episodes, deterministic=deterministic)
                 objective = solution.penalised_return()[0]
                 success = (None if constraints is None
@@ -614,19 +625,26 @@ class SACConstrainedSolver:
                 if best is None or key > best_key:
                     best, best_key = solution, key
                     best_state = copy.deepcopy(solver.model.policy.state_dict())
+                if bar is not None:  # the best so far: its success rate, its objective
+                    bar.set_postfix(lineage=r, best_objective=f"{best_key[1]:.1f}",
+                                    **({} if success is None
+                                       else {"best_success": f"{best_key[0]:.2f}"}),
+                                    refresh=False)
             if solver is not self:
                 solver.close()
         self.last_checks.sort(key=lambda c: c["restart"])  # stable: chunks stay in order
         return best, best_state
 
-    def _train(self, eta: Any, cost_weights: Any, timesteps: int) -> None:
-        """Set the weights (relabelling the buffer) and continue SAC for ``timesteps``."""
+    def _train(self, eta: Any, cost_weights: Any, timesteps: int, bar: Any = None) -> None:
+        """Set the weights (relabelling the buffer) and continue SAC for ``timesteps``
+        (advancing a tqdm ``bar`` by the env steps, if given)."""
         if not _is_int(timesteps) or timesteps < 0:
             raise ValueError(f"timesteps must be an int >= 0, got {timesteps!r}.")
         self.set_weights(eta, cost_weights)
         if timesteps > 0:
             with self._private_rng():
-                self.model.learn(total_timesteps=int(timesteps), reset_num_timesteps=False)
+                self.model.learn(total_timesteps=int(timesteps), reset_num_timesteps=False,
+                                 callback=None if bar is None else _BarCallback(bar))
 
     def _policy_params(self, obs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and log-std ``[B, d_a]`` (pre-squash) of the actor at observations
@@ -793,3 +811,38 @@ class SACConstrainedSolver:
         self.vec_env.close()
         for env in self._eval_envs[False] + self._eval_envs[True] + [self._env]:
             env.close()
+
+
+# ---- progress ---------------------------------------------------------------------
+@contextlib.contextmanager
+def _step_bar(label: str | None, total: int) -> Iterator[Any]:
+    """A tqdm bar of ``total`` env steps labelled ``label`` (closed on exit), or None
+    without a label."""
+    if label is None:
+        yield None
+        return
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=int(total), desc=label, unit="step", leave=False)
+    try:
+        yield bar
+    finally:
+        bar.close()
+
+
+class _BarCallback(BaseCallback):
+    """Advances a tqdm bar by the env steps SB3 takes (no randomness, never stops
+    training: the run's numbers are those without it)."""
+
+    def __init__(self, bar: Any) -> None:
+        super().__init__()
+        self.bar = bar
+        self._seen = None
+
+    def _on_training_start(self) -> None:
+        self._seen = self.model.num_timesteps
+
+    def _on_step(self) -> bool:
+        self.bar.update(self.model.num_timesteps - self._seen)
+        self._seen = self.model.num_timesteps
+        return True
