@@ -23,6 +23,7 @@ from dicrl_torch.solvers.sac import (
     BoxScaler,
     DecomposedSAC,
     FeatureReplayBuffer,
+    Lineage,
     SACConstrainedSolver,
     SACSolution,
     discounted_demo_feature_sums,
@@ -755,3 +756,39 @@ def test_progress_bars_count_every_step_and_change_no_number(monkeypatch):
                        progress="planning")
     for p, q in zip(x.paths, y.paths, strict=True):
         np.testing.assert_array_equal(p, q)
+
+
+def test_lineages_split_over_equal_solvers_give_solve_keeping_best():
+    """Two equal solvers train lineages {0, 1} and {2} of one solve_keeping_best; the
+    first adopts the best of all three (the other's read back through torch.save with
+    weights_only) and is then the solver that trained all three itself: policy, scores,
+    and the next solve."""
+    import io
+
+    eta, wc = random_weights(np.random.default_rng(11))
+    whole, first, second = (make_solver(seed=12, learning_starts=50) for _ in range(3))
+    for solver in (whole, first, second):
+        solver._train(eta, wc, 60)
+    kwargs = dict(checks=2, restarts=3, n_eval_episodes=2, deterministic=True)
+    best = whole.solve_keeping_best(eta, wc, 60, **kwargs)
+    mine = first.train_lineages(eta, wc, 60, lineages=[1, 0], **kwargs)
+    theirs = second.train_lineages(eta, wc, 60, lineages=[2], **kwargs)
+    assert [lineage.restart for lineage in mine] == [0, 1]
+    buffer = io.BytesIO()
+    torch.save(theirs[0].state(), buffer)
+    buffer.seek(0)
+    read = Lineage.from_state(torch.load(buffer, weights_only=True))
+    adopted = first.adopt_best([*mine, read])
+    assert first.last_checks == whole.last_checks
+    top = max(whole.last_checks, key=lambda c: c["penalised_return"])
+    assert adopted.restart == top["restart"] == 2  # (this seed) the other process's
+    assert adopted.key[1] == pytest.approx(best.penalised_return()[0], rel=0, abs=0)
+    for key, value in whole.model.policy.state_dict().items():
+        assert torch.equal(value, first.model.policy.state_dict()[key]), key
+    a, b = whole.solve(eta, wc, 40, n_eval_episodes=2), first.solve(eta, wc, 40,
+                                                                    n_eval_episodes=2)
+    torch.testing.assert_close(a.reward_sums, b.reward_sums, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="distinct ints"):
+        first.train_lineages(eta, wc, 60, lineages=[3], **kwargs)
+    with pytest.raises(ValueError, match="distinct lineages"):
+        first.adopt_best([*mine, *mine])

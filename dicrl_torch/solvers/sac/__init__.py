@@ -127,7 +127,7 @@ from dicrl_torch.solvers.sac.decomposed import DecomposedCritic, DecomposedSAC, 
 from dicrl_torch.solvers.sac.features import BoxScaler, discounted_demo_feature_sums
 from dicrl_torch.solvers.sac.protocol import JointEnvSpec
 from dicrl_torch.solvers.sac.solution import SACSolution
-from dicrl_torch.solvers.sac.solver import STATE_FORMAT, SACConstrainedSolver
+from dicrl_torch.solvers.sac.solver import STATE_FORMAT, Lineage, SACConstrainedSolver
 
 __all__ = [
     "STATE_FORMAT",
@@ -137,6 +137,7 @@ __all__ = [
     "DecomposedSACPolicy",
     "FeatureReplayBuffer",
     "JointEnvSpec",
+    "Lineage",
     "SACConstrainedSolver",
     "SACSolution",
     "discounted_demo_feature_sums",
