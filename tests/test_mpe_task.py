@@ -484,3 +484,46 @@ def test_the_warm_up_is_kept_in_the_run_directory(tmp_path, capsys):
     broken._warmed_base()
     out = capsys.readouterr().out
     assert "warmup.pt is unreadable" in out and "SAC warm-up: 60 steps" in out
+
+
+def test_learner_processes_share_the_warm_up_lineages(tmp_path, capsys, monkeypatch):
+    """bind_run_dir(process=p, processes=2) with 3 lineages: process 1 trains lineage 1
+    and leaves it in warmup_lineages/ (then waits for warmup.pt: here a short wait that
+    times out, naming the fix); process 0 trains lineages 0 and 2, adopts the best of the
+    three and writes warmup.pt, which equals the one-process warm-up; process 1 of a new
+    start loads it."""
+    from test_sac_state import assert_same_solution, assert_same_solver
+
+    from dicrl_torch.runs import continuous
+
+    config = {"seed": 2, "solver.warmup_timesteps": 60, "restarts": 3}
+    settings = dict(warmup_restarts=3, warmup_checks=2, seed=2)
+    alone = tiny_task(**settings)
+    alone.bind_run_dir(tmp_path / "alone", config)
+    whole = alone._warmed_base()
+
+    monkeypatch.setattr(continuous, "WARMUP_WAIT_S", 0.5)
+    second = tiny_task(**settings)
+    second.bind_run_dir(tmp_path, config, process=1, processes=2)
+    with pytest.raises(TimeoutError, match="was not written .* by learner process 0.*"
+                                           "shared file system"):
+        second._warmed_base()
+    assert sorted(q.name for q in (tmp_path / "warmup_lineages").iterdir()) == ["lineage1.pt"]
+    first = tiny_task(**settings)
+    first.bind_run_dir(tmp_path, config, process=0, processes=2)
+    shared = first._warmed_base()
+    assert "waiting for lineages [1]" in capsys.readouterr().out
+    assert not (tmp_path / "warmup_lineages").exists()  # removed once warmup.pt is written
+    assert shared.last_checks == whole.last_checks
+    best = max(whole.last_checks, key=lambda c: (c["success_under_constraints"],
+                                                  c["penalised_return"], -c["restart"]))
+    assert best["restart"] == 1  # (this seed) the other process's lineage is adopted
+    assert_same_solver(shared, whole)
+    again = tiny_task(**settings)
+    again.bind_run_dir(tmp_path, config, process=1, processes=2)
+    assert_same_solver(again._warmed_base(), whole)
+    assert "SAC warm-up loaded from" in capsys.readouterr().out
+    eta, cw = first.eta0.numpy(), first.cw0.numpy()
+    assert_same_solution(again.base.solve(eta, cw, 20), whole.solve(eta, cw, 20))
+    with pytest.raises(ValueError, match=r"process must lie in \[0, processes\)"):
+        tiny_task().bind_run_dir(tmp_path, config, process=2, processes=2)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -59,6 +60,14 @@ FINAL_SCORES: tuple[str, ...] = ("penalised_return", "learned_success")
 GREEDY_BASELINE = "M(C)E-greedy"
 WARMUP_FILE = "warmup.pt"
 """The run directory's file of the SAC warm-up (:meth:`SACTask.bind_run_dir`)."""
+WARMUP_LINEAGES_DIR = "warmup_lineages"
+"""Where the processes of one run leave the warm-up lineages they trained, for the one
+that trains lineage 0 (:meth:`SACTask.bind_run_dir`); removed once ``warmup.pt`` is
+written."""
+WARMUP_WAIT_S = 6 * 3600.0
+"""How long a process waits for the others' share of the warm-up (a lineage takes
+minutes; a process that dies is noticed by the spawning process or torchrun, which stops
+the others)."""
 
 
 def derived_seed(seed: int, *keys: int) -> int:
@@ -224,6 +233,7 @@ class SACTask:
         self._warm = False
         self._warmup_file: Path | None = None  # bind_run_dir
         self._warmup_key: str | None = None
+        self._process, self._processes = 0, 1
         self._paths: list[np.ndarray] = []  # rollouts of the row evaluated last (its map)
         self._greedy: dict[str, SACGreedyConstraintInference] = {}
 
@@ -256,18 +266,33 @@ class SACTask:
         return (f"{float(solution.reached.double().mean()):.2f} of the agents reach their "
                 f"goal and {solution.violation_rate:.2f} cross a true constraint")
 
-    def bind_run_dir(self, out: Path, training_config: dict) -> None:
+    def bind_run_dir(self, out: Path, training_config: dict, *, process: int = 0,
+                     processes: int = 1) -> None:
         """Keep the warm-up's solver in ``out/warmup.pt``, keyed by the run's
         ``training_config``: the processes of one run (the learners of ``comm=distributed``,
         then the process that runs C-ICRL) and a resumed run load it instead of training
-        it again. A file of another config is ignored and replaced."""
+        it again. A file of another config is ignored and replaced.
+
+        With ``processes`` > 1 this is process ``process`` of that many that reach the
+        warm-up together (the learner processes): a warm-up of several lineages
+        (``warmup_restarts``) is then shared, process ``p`` training lineages
+        ``p, p + processes, ...``; process 0 adopts the best of all (read from
+        ``out/warmup_lineages/``) and writes ``warmup.pt``, which the others load. The
+        result is the one-process warm-up's (the lineages are independent and seeded).
+        """
         key = json.dumps(training_config, sort_keys=True, default=str)
         self._warmup_file = Path(out) / WARMUP_FILE
         self._warmup_key = hashlib.sha256(key.encode()).hexdigest()
+        if not all(isinstance(x, int | np.integer) and not isinstance(x, bool)
+                   for x in (process, processes)) or not 0 <= process < processes:
+            raise ValueError(f"process must lie in [0, processes), got process={process!r}, "
+                             f"processes={processes!r}.")
+        self._process, self._processes = int(process), int(processes)
 
-    def _load_warmup(self) -> str | None:
+    def _load_warmup(self, report: bool = True) -> str | None:
         """Load the bound run directory's warm-up into the base solver; its summary
-        line, or None where there is none of this run's config."""
+        line, or None where there is none of this run's config (``report``: say so when
+        the file is unreadable)."""
         path = self._warmup_file
         if path is None or not path.is_file():
             return None
@@ -279,8 +304,9 @@ class SACTask:
             self.base.load_state_dict(saved["solver"])  # checked before anything changes
             return summary
         except Exception as e:  # noqa: BLE001 - any unreadable file: train it again
-            print(f"SAC warm-up: {path} is unreadable ({type(e).__name__}: {e}); training "
-                  f"it again.", flush=True)
+            if report:
+                print(f"SAC warm-up: {path} is unreadable ({type(e).__name__}: {e}); "
+                      f"training it again.", flush=True)
             return None
 
     def _warmed_base(self, progress: bool = False):
@@ -298,22 +324,108 @@ class SACTask:
                 if self.warmup_restarts == 1 and self.warmup_checks == 1:
                     sol = self.base.solve(self.eta0, self.cw0, self.warmup_timesteps,
                                           progress=label)
+                    done = self.warmup_summary(sol)
+                elif self._processes > 1 and self._warmup_file is not None:
+                    done = self._shared_warmup(label)
                 else:  # no constraint known yet: "success" is reaching the goals
                     sol = self.base.solve_keeping_best(
-                        self.eta0, self.cw0, self.warmup_timesteps, checks=self.warmup_checks,
-                        restarts=self.warmup_restarts, deterministic=self.eval_action == "mean",
-                        constraints=torch.zeros(self.base.l_c, dtype=torch.bool),
-                        progress=label)
-                summary = (f"{self.warmup_timesteps} steps on η(0) in "
-                           f"{time.perf_counter() - t0:.0f} s; in the nominal game "
-                           f"{self.warmup_summary(sol)}")
-                print(f"SAC warm-up: {summary}", flush=True)
-                if self._warmup_file is not None:
-                    state = {"key": self._warmup_key, "summary": summary,
-                             "solver": self.base.state_dict()}
-                    atomic_write(self._warmup_file, lambda f: torch.save(state, f))
+                        self.eta0, self.cw0, self.warmup_timesteps,
+                        **self._warmup_lineage_settings(), progress=label)
+                    done = self.warmup_summary(sol)
+                if done is None:  # another process adopted the best lineage
+                    summary = self._wait_for_warmup()
+                    print(f"SAC warm-up loaded from {self._warmup_file} ({summary})",
+                          flush=True)
+                else:
+                    summary = (f"{self.warmup_timesteps} steps on η(0) in "
+                               f"{time.perf_counter() - t0:.0f} s; in the nominal game {done}")
+                    print(f"SAC warm-up: {summary}", flush=True)
+                    if self._warmup_file is not None:
+                        state = {"key": self._warmup_key, "summary": summary,
+                                 "solver": self.base.state_dict()}
+                        atomic_write(self._warmup_file, lambda f: torch.save(state, f))
+                        if self._processes > 1:
+                            shutil.rmtree(self._warmup_file.parent / WARMUP_LINEAGES_DIR,
+                                          ignore_errors=True)
         self._warm = True
         return self.base
+
+    def _warmup_lineage_settings(self) -> dict[str, Any]:
+        """The warm-up's lineages: chunks, restarts, how they are scored (no constraint
+        known yet: "success" is reaching the goals)."""
+        return {"checks": self.warmup_checks, "restarts": self.warmup_restarts,
+                "deterministic": self.eval_action == "mean",
+                "constraints": torch.zeros(self.base.l_c, dtype=torch.bool)}
+
+    def _shared_warmup(self, label: str | None) -> str | None:
+        """This process's share of the warm-up's lineages (:meth:`bind_run_dir`). Process
+        0 waits for the others', adopts the best and returns its summary line; the others
+        leave theirs in the run directory and return None."""
+        from dicrl_torch.solvers.sac import Lineage  # SB3: only where SAC runs
+
+        p, n, restarts = self._process, self._processes, self.warmup_restarts
+        folder = self._warmup_file.parent / WARMUP_LINEAGES_DIR
+        mine = list(range(p, restarts, n))
+        lineages = self.base.train_lineages(
+            self.eta0, self.cw0, self.warmup_timesteps, lineages=mine,
+            **self._warmup_lineage_settings(), progress=label) if mine else []
+        summaries = {}
+        for lineage in lineages:
+            summaries[lineage.restart] = self.warmup_summary(lineage.solution)
+            record = {"key": self._warmup_key, "summary": summaries[lineage.restart],
+                      "lineage": lineage.state()}
+            folder.mkdir(parents=True, exist_ok=True)
+            atomic_write(folder / f"lineage{lineage.restart}.pt",
+                         lambda f, record=record: torch.save(record, f))
+        if p != 0:
+            return None
+        others = [r for r in range(restarts) if r not in mine]
+        if others:
+            print(f"SAC warm-up: waiting for lineages {others} from the other learner "
+                  f"processes ({folder})", flush=True)
+        deadline = time.monotonic() + WARMUP_WAIT_S
+        while others:
+            for r in list(others):
+                record = self._read_lineage(folder / f"lineage{r}.pt")
+                if record is not None:
+                    lineages.append(Lineage.from_state(record["lineage"]))
+                    summaries[r] = str(record["summary"])
+                    others.remove(r)
+            if others:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(
+                        f"SAC warm-up: lineages {others} did not appear in {folder} within "
+                        f"{WARMUP_WAIT_S:.0f} s. Every learner process must see the same "
+                        f"run directory (multi-node runs: hydra.run.dir on a shared file "
+                        f"system).")
+                time.sleep(1.0)
+        best = self.base.adopt_best(lineages)
+        return summaries[best.restart]
+
+    def _read_lineage(self, path: Path) -> dict | None:
+        """A lineage file of this run's config, or None (absent, of another config, or
+        not readable yet)."""
+        if not path.is_file():
+            return None
+        try:
+            record = torch.load(path, weights_only=True)  # tensors and plain values only
+        except Exception:  # noqa: BLE001 - written atomically: another run's leftovers
+            return None
+        return record if isinstance(record, dict) and record.get("key") == self._warmup_key \
+            else None
+
+    def _wait_for_warmup(self) -> str:
+        """Wait for process 0 to write this run's ``warmup.pt`` and load it; its summary."""
+        deadline = time.monotonic() + WARMUP_WAIT_S
+        while (summary := self._load_warmup(report=False)) is None:
+            if time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"SAC warm-up: {self._warmup_file} was not written within "
+                    f"{WARMUP_WAIT_S:.0f} s by learner process 0. Every learner process "
+                    f"must see the same run directory (multi-node runs: hydra.run.dir on a "
+                    f"shared file system).")
+            time.sleep(1.0)
+        return summary
 
     def learner_model(self, local_ids: Sequence[int], shards: Sequence, stream: int
                       ) -> SACLearnerModel:

@@ -284,8 +284,9 @@ class GridTask:
         self.make_baselines({}, progress=False)  # a baseline that cannot run fails now
         print(self.describe())
 
-    def bind_run_dir(self, out: Path, training_config: dict) -> None:
-        """Nothing to keep: the exact solver has no pre-training."""
+    def bind_run_dir(self, out: Path, training_config: dict, *, process: int = 0,
+                     processes: int = 1) -> None:
+        """Nothing to keep or share: the exact solver has no pre-training."""
 
     def learner_model(self, local_ids: Sequence[int], shards: Sequence, stream: int
                       ) -> TabularLearnerModel:

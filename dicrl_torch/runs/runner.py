@@ -58,10 +58,12 @@ class Task(Protocol):
     def announce(self, out: Path) -> None:
         """Printed (and the demonstrations saved) once per run, by the main process."""
 
-    def bind_run_dir(self, out: Path, training_config: dict) -> None:
+    def bind_run_dir(self, out: Path, training_config: dict, *, process: int = 0,
+                     processes: int = 1) -> None:
         """The run directory, in every process of the run before it trains: a task may
         keep there what it computes once per run (the SAC warm-up), keyed by the run's
-        ``training_config``."""
+        ``training_config``, and share that work between the ``processes`` learner
+        processes that reach it together (this one is ``process``)."""
 
     def learner_model(self, local_ids: Sequence[int], shards: Sequence, stream: int):
         """The learner model of a trainer over ``local_ids`` holding ``shards`` (stream 0:
@@ -443,7 +445,7 @@ def run_learner(comm, task: Task, settings: RunSettings, spec: TrainerSpec, *, o
     """Learner ``comm.rank``: train on its own shard, evaluate its row, write it to
     ``learner_rows/rank<r>.json`` and wait for the others."""
     rank = comm.rank
-    task.bind_run_dir(out, settings.training_config)
+    task.bind_run_dir(out, settings.training_config, process=rank, processes=comm.n_learners)
     shard = task.shards[rank]
     if shard is None:
         raise ValueError(f"Learner {rank} holds no demonstrations in this process.")
