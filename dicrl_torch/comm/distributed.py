@@ -341,7 +341,26 @@ def _run_learner(fn: Callable[..., Any], rank: int, world_size: int, init_method
 def spawn_learners(fn: Callable[..., Any], n_learners: int, *, args: Sequence = (),
                    timeout_s: float = 120.0, port: int | None = None, grace_s: float = 10.0,
                    num_threads: int | None = 1) -> list[Any]:
-    """Run ``fn(rank, world_size, init_method, *args)`` in ``n_learners`` processes.
+    """Run ``fn(rank, world_size, init_method, *args)`` in ``n_learners`` processes and
+    wait for them (:class:`LearnerProcesses`, whose arguments these are).
+
+    Returns:
+        Each rank's return value, in rank order.
+
+    Raises:
+        LearnerProcessError: a process raised, died, or outlived the timeout; the
+            message names each failing rank with its exception text.
+    """
+    with LearnerProcesses(fn, n_learners, args=args, timeout_s=timeout_s, port=port,
+                          grace_s=grace_s, num_threads=num_threads) as learners:
+        return learners.wait()
+
+
+class LearnerProcesses:
+    """``n_learners`` processes running ``fn(rank, world_size, init_method, *args)``,
+    started on entering the context; the starting process may work meanwhile
+    (:meth:`failed` tells whether a learner has already failed) before it collects them
+    with :meth:`wait`. Leaving the context terminates any still running.
 
     Processes use the "spawn" start method and rendezvous at ``tcp://127.0.0.1:PORT``.
     ``fn`` must be importable (module level) and return a picklable value.
@@ -351,37 +370,69 @@ def spawn_learners(fn: Callable[..., Any], n_learners: int, *, args: Sequence = 
             with ``init_method=init_method, rank=rank, world_size=world_size``.
         n_learners: number of processes (the world size passed to ``fn``).
         args: extra picklable arguments for ``fn``.
-        timeout_s: wall-clock bound for the whole run; then every process is killed.
+        timeout_s: wall-clock bound for the whole run, from the start; then every
+            process is killed.
         port: rendezvous port (default: a free one).
         grace_s: once a process has failed, how long the others may still run (to
             report their own errors) before they are terminated.
         num_threads: ``torch.set_num_threads`` in each child (None: leave torch's default).
-
-    Returns:
-        Each rank's return value, in rank order.
-
-    Raises:
-        LearnerProcessError: a process raised, died, or outlived the timeout; the
-            message names each failing rank with its exception text.
     """
-    if n_learners < 1:
-        raise ValueError(f"n_learners must be >= 1, got {n_learners}.")
-    if not timeout_s > 0:
-        raise ValueError(f"timeout_s must be > 0, got {timeout_s}.")
-    init_method = f"tcp://127.0.0.1:{port or free_port()}"
-    ctx = mp.get_context("spawn")
-    with tempfile.TemporaryDirectory(prefix="dicrl-learners-") as out_dir:
-        procs = [ctx.Process(target=_run_learner, name=f"dicrl-learner-{r}",
-                             args=(fn, r, n_learners, init_method, tuple(args), out_dir,
-                                   num_threads))
-                 for r in range(n_learners)]
+
+    def __init__(self, fn: Callable[..., Any], n_learners: int, *, args: Sequence = (),
+                 timeout_s: float = 120.0, port: int | None = None, grace_s: float = 10.0,
+                 num_threads: int | None = 1) -> None:
+        if n_learners < 1:
+            raise ValueError(f"n_learners must be >= 1, got {n_learners}.")
+        if not timeout_s > 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s}.")
+        self.fn, self.n_learners, self.args = fn, n_learners, tuple(args)
+        self.timeout_s, self.port, self.grace_s = timeout_s, port, grace_s
+        self.num_threads = num_threads
+        self.procs: list = []
+
+    def __enter__(self) -> LearnerProcesses:
+        init_method = f"tcp://127.0.0.1:{self.port or free_port()}"
+        ctx = mp.get_context("spawn")
+        self._dir = tempfile.TemporaryDirectory(prefix="dicrl-learners-")
+        self.procs = [ctx.Process(target=_run_learner, name=f"dicrl-learner-{r}",
+                                  args=(self.fn, r, self.n_learners, init_method, self.args,
+                                        self._dir.name, self.num_threads))
+                      for r in range(self.n_learners)]
+        try:
+            for p in self.procs:
+                p.start()
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        self._start = time.monotonic()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            _terminate(self.procs)
+        finally:
+            self._dir.cleanup()
+
+    def failed(self) -> bool:
+        """Whether a learner process has already exited with an error."""
+        return any(p.exitcode not in (None, 0) for p in self.procs)
+
+    def wait(self) -> list[Any]:
+        """Wait for every process (bounded by ``timeout_s`` from the start, and by
+        ``grace_s`` after a first failure), then collect them.
+
+        Returns:
+            Each rank's return value, in rank order.
+
+        Raises:
+            LearnerProcessError: a process raised, died, or outlived the timeout; the
+                message names each failing rank with its exception text.
+        """
+        procs = self.procs
         stopped: dict[int, str] = {}
         failed_at: dict[int, float] = {}
         try:
-            for p in procs:
-                p.start()
-            start = time.monotonic()
-            deadline = start + timeout_s
+            deadline = self._start + self.timeout_s
             while True:
                 now = time.monotonic()
                 for r, p in enumerate(procs):
@@ -391,11 +442,11 @@ def spawn_learners(fn: Callable[..., Any], n_learners: int, *, args: Sequence = 
                 if not alive:
                     break
                 limit = deadline if not failed_at else min(
-                    deadline, min(failed_at.values()) + grace_s)
+                    deadline, min(failed_at.values()) + self.grace_s)
                 if now >= limit:
                     first = min(failed_at, key=failed_at.get) if failed_at else None
-                    why = (f"timed out after {timeout_s:g} s" if now >= deadline else
-                           f"terminated {grace_s:g} s after rank {first} failed")
+                    why = (f"timed out after {self.timeout_s:g} s" if now >= deadline else
+                           f"terminated {self.grace_s:g} s after rank {first} failed")
                     for r, p in enumerate(procs):
                         if p.exitcode is None:
                             stopped[r] = f"still running: {why}"
@@ -404,7 +455,7 @@ def spawn_learners(fn: Callable[..., Any], n_learners: int, *, args: Sequence = 
                                                 timeout=min(limit - now, 1.0))
         finally:
             _terminate(procs)
-        return _collect(procs, Path(out_dir), stopped, failed_at)
+        return _collect(procs, Path(self._dir.name), stopped, failed_at)
 
 
 def _terminate(procs: list) -> None:
