@@ -88,6 +88,7 @@ VALUE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
     ("algo.prune_min_gain", float | None, _ge(0.0),
      "null (keep every constraint) or a number >= 0 (nats per trajectory)", "0.001"),
     ("algo.run_c_icrl", bool, None, "true or false", "true"),
+    ("algo.c_icrl_beside_learners", bool, None, "true or false", "false"),
     ("algo.run_d_icrl", bool, None, "true or false", "true"),
     ("algo.inner_method", str, lambda x: x in ("paper", "gradient_tracking"),
      "'paper' or 'gradient_tracking'", "paper"),
@@ -164,7 +165,7 @@ KNOWN_KEYS = {
     "algo": {"outer_iterations", "inner_steps", "inner_method", "inner_step", "steps",
              "lsca_curvature", "prune_accrued", "init_cost_weights", "init_reward_weights",
              "init_multiplier", "constraint_rule", "certificate", "threshold",
-             "prune_min_gain", "run_c_icrl", "run_d_icrl"},
+             "prune_min_gain", "run_c_icrl", "run_d_icrl", "c_icrl_beside_learners"},
     "algo.certificate": {"temperature", "min_probability"},
     "baselines": {"run", "epsilon", "max_constraints", "penalty", "timesteps"},
 }

@@ -18,8 +18,10 @@ inf exits with 1 naming where it arose (docs/design.md §8).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shlex
+import signal
 import sys
 import threading
 import time
@@ -46,8 +48,8 @@ from dicrl_torch.comm import SimulatedCommunicator
 from dicrl_torch.comm.distributed import (
     ConfigMismatchError,
     LearnerProcessError,
+    LearnerProcesses,
     PeerFailureError,
-    spawn_learners,
 )
 from dicrl_torch.runs.checkpoints import Checkpoints
 from dicrl_torch.runs.runner import (
@@ -55,9 +57,10 @@ from dicrl_torch.runs.runner import (
     finish,
     merge_learner_rows,
     run_all_in_one,
+    run_c_icrl,
     run_learner,
 )
-from dicrl_torch.runs.signals import Interrupted, interrupt_on_signals
+from dicrl_torch.runs.signals import Interrupted, StopOnSignal, interrupt_on_signals
 
 
 def resume_command(out: Path) -> str:
@@ -76,20 +79,22 @@ def resume_hint(out: Path) -> str:
             f"same overrides plus resume=true hydra.run.dir={out}:\n  {resume_command(out)}")
 
 
-def finish_here(cfg, task, out: Path, d_icrl: dict, t_start: float) -> None:
-    """C-ICRL, the baselines and the reference rows in this process, after the learner
-    processes have written their rows."""
+def finish_here(cfg, task, out: Path, d_icrl: dict, t_start: float, *,
+                ckpt: Checkpoints | None = None, logger=None, c_icrl: dict | None = None
+                ) -> None:
+    """C-ICRL (unless it ran beside the learners: ``c_icrl``), the baselines and the
+    reference rows in this process, after the learner processes have written their rows."""
     settings = run_settings(cfg)
     finish(task, settings, trainer_spec(cfg), out=out, d_icrl=d_icrl,
-           logger=make_logger(cfg, out),
+           logger=make_logger(cfg, out) if logger is None else logger,
            ckpt=Checkpoints(out / "checkpoint.pt", cfg.resume,
-                            config=settings.training_config),
-           t_start=t_start, c_icrl_comm=SimulatedCommunicator(n_learners=1))
+                            config=settings.training_config) if ckpt is None else ckpt,
+           t_start=t_start, c_icrl_comm=SimulatedCommunicator(n_learners=1), c_icrl=c_icrl)
 
 
 def spawned_learner(rank: int, world_size: int, init_method: str, cfg_yaml: str,
-                    out_dir: str, run_id: str) -> None:
-    """Body of a learner process started by :func:`spawn_learners`."""
+                    out_dir: str, run_id: str, sharing: int) -> None:
+    """Body of a learner process started by :func:`run_spawned`."""
     from tqdm import tqdm
 
     # tqdm's default lock, a named semaphore here, leaks at os._exit: a thread lock will do.
@@ -99,24 +104,72 @@ def spawned_learner(rank: int, world_size: int, init_method: str, cfg_yaml: str,
     comm = build(cfg.comm, init_method=init_method, rank=rank, world_size=world_size)
     comm.check_same_config(cfg_yaml)
     run_learner(comm, build_task(cfg, rank), run_settings(cfg), trainer_spec(cfg),
-                out=Path(out_dir), run_id=run_id, logger=make_logger(cfg, Path(out_dir)))
+                out=Path(out_dir), run_id=run_id, logger=make_logger(cfg, Path(out_dir)),
+                sharing=sharing)
     comm.close()
 
 
+@contextlib.contextmanager
+def stop_when_a_learner_fails(learners: LearnerProcesses):
+    """Inside, a learner process that fails sends this process SIGTERM (once), so that
+    work beside the learners stops at its next checkpoint instead of running on alone."""
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.wait(1.0):
+            if learners.failed():
+                print("\na learner process failed: stopping the work beside the learners "
+                      "(SIGTERM to this process)", file=sys.stderr, flush=True)
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
+
+    thread = threading.Thread(target=watch, name="learner-watch", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+
+
 def run_spawned(cfg, out: Path, t_start: float) -> None:
-    """``python experiments/train.py comm=distributed``: one learner process per shard."""
+    """``python experiments/train.py comm=distributed``: one learner process per shard;
+    with ``algo.c_icrl_beside_learners`` this process trains C-ICRL meanwhile."""
     n = len(cfg.split)
     task = build_task(cfg)
     task.announce(out)
     threads = int(os.environ.get("DICRL_THREADS", max(1, torch.get_num_threads() // n)))
+    beside = bool(cfg.algo.run_c_icrl and cfg.algo.c_icrl_beside_learners)
+    sharing = n + 1 if beside else n
     run_id = uuid.uuid4().hex
-    print(f"starting {n} learner processes ({threads} thread(s) each)", flush=True)
-    interrupt_on_signals()  # on a signal, spawn_learners stops every learner on its way out
+    print(f"starting {n} learner processes ({threads} thread(s) each)"
+          + (", C-ICRL in this one" if beside else ""), flush=True)
+    interrupt_on_signals()  # on a signal, the learner processes are stopped on the way out
+    settings = run_settings(cfg)
+    ckpt = logger = c_icrl = None
     try:
         # No overall time limit: every wait between learners is bounded by comm.timeout_s,
         # and once one process fails the others are stopped after a grace period.
-        spawn_learners(spawned_learner, n, timeout_s=float("inf"), num_threads=threads,
-                       args=(OmegaConf.to_yaml(cfg, resolve=True), str(out), run_id))
+        with LearnerProcesses(spawned_learner, n, timeout_s=float("inf"), num_threads=threads,
+                              args=(OmegaConf.to_yaml(cfg, resolve=True), str(out), run_id,
+                                    sharing)) as learners:
+            if beside:
+                torch.set_num_threads(threads)
+                ckpt = Checkpoints(out / "checkpoint.pt", cfg.resume,
+                                   config=settings.training_config)
+                logger = make_logger(cfg, out)
+                task.bind_run_dir(out, settings.training_config, process=n, processes=sharing)
+                try:
+                    with StopOnSignal() as stop, stop_when_a_learner_fails(learners):
+                        c_icrl = run_c_icrl(task, trainer_spec(cfg), settings=settings,
+                                            out=out, logger=logger, ckpt=ckpt,
+                                            communicator=SimulatedCommunicator(n_learners=1),
+                                            stop=stop)
+                except Interrupted:
+                    if not learners.failed():
+                        raise
+                    # A learner failed (and stopped C-ICRL): its error is the news.
+            learners.wait()
     except LearnerProcessError as e:
         first = e.tracebacks.get(e.first_failed) if e.first_failed is not None else None
         if first:
@@ -126,7 +179,8 @@ def run_spawned(cfg, out: Path, t_start: float) -> None:
         print(f"\ninterrupted by {e}: every learner process was stopped; no results.json "
               f"was written. {resume_hint(out)}", file=sys.stderr, flush=True)
         sys.exit(128 + e.signum)
-    finish_here(cfg, task, out, merge_learner_rows(out, n, run_id), t_start)
+    finish_here(cfg, task, out, merge_learner_rows(out, n, run_id), t_start, ckpt=ckpt,
+                logger=logger, c_icrl=c_icrl)
 
 
 def run_torchrun(cfg, out: Path, t_start: float) -> None:

@@ -22,10 +22,11 @@ from tiny_train import comparable, finished_run
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ROOT / "experiments" / "train.py"
 # Two outer iterations: the crash after the first leaves one to resume.
-# The drones' warm-up keeps the best of 2 lineages: one per learner process when shared.
+# The drones' warm-up keeps the best of 3 lineages: with comm=distributed one per learner
+# process and one in the process that trains C-ICRL beside them (table2's settings).
 GAMES = {
     "drones": [*(o for o in TINY if not o.startswith("algo.outer_iterations=")),
-               "solver.warmup_restarts=2", "solver.warmup_checks=2"],
+               "solver.warmup_restarts=3", "solver.warmup_checks=2"],
     "mpe": ["experiment=mpe_quick", "solver.solver.demo_bc=0.5",  # its loss's state too
             *(o for o in CONFIG_TINY if not o.startswith("algo.outer_iterations="))],
 }
@@ -81,8 +82,9 @@ def test_one_process_per_learner_gives_the_simulated_results(tmp_path, game, uni
     out = run(game, tmp_path, "comm=distributed")
     assert out.returncode == 0, out.stderr[-3000:]
     assert "starting 2 learner processes" in out.stdout
-    if game == "drones":  # the learner processes trained one lineage each
-        assert "waiting for lineages [1] from the other learner processes" in out.stdout
+    if game == "drones":  # C-ICRL beside the learners; each process trained one lineage
+        assert "learner processes (1 thread(s) each), C-ICRL in this one" in out.stdout
+        assert "waiting for lineages [1, 2] from the other learner processes" in out.stdout
     # C-ICRL, in this process, starts from the learners' warm-up file.
     assert "SAC warm-up loaded from" in out.stdout
     assert_same(tmp_path, uninterrupted)
@@ -96,4 +98,30 @@ def test_a_warm_up_file_of_another_config_is_trained_again(tmp_path, game, unint
     again = run(game, tmp_path)
     assert again.returncode == 0, again.stderr[-3000:]
     assert "SAC warm-up: " in again.stdout and "loaded from" not in again.stdout
+    assert_same(tmp_path, uninterrupted)
+
+
+@pytest.mark.skipif(not (dist.is_available() and dist.is_gloo_available()),
+                    reason="torch.distributed with gloo is not available")
+def test_a_dead_learner_stops_c_icrl_beside_it_and_resume_finishes_the_run(
+        tmp_path, game, uninterrupted):
+    """The drones' C-ICRL trains in the starting process beside the learner processes:
+    learner 1 killed (SIGKILL) after its first outer iteration stops the whole run within
+    a minute with its error and a resume hint, and resuming gives the uninterrupted
+    results.json."""
+    import time
+
+    if game != "drones":
+        pytest.skip("C-ICRL beside the learners is table2's setting (the drones)")
+    crashed = run("drones", tmp_path, "comm=distributed",
+                  env={"DICRL_CRASH_AFTER": "D-ICRL@rank1:1"})
+    elapsed = time.time() - (tmp_path / "checkpoint_rank1.pt").stat().st_mtime
+    assert crashed.returncode == 1, crashed.stderr[-3000:]
+    assert "rank 1: exited with code -9" in crashed.stderr
+    assert f"resume=true hydra.run.dir={tmp_path}" in crashed.stderr
+    assert elapsed < 60, f"the run ended {elapsed:.0f} s after learner 1 died"
+    assert not (tmp_path / "results.json").exists()
+    resumed = run("drones", tmp_path, "comm=distributed", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "SAC warm-up loaded from" in resumed.stdout
     assert_same(tmp_path, uninterrupted)

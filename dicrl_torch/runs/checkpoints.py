@@ -33,7 +33,7 @@ CHECKPOINT_KEYS = ("seed", "n_demonstrations", "split", "expert_temperature", "e
                    "solver", "graph", "algo")
 CHECKPOINT_IGNORED = ("solver.progress", "algo.outer_iterations", "algo.threshold",
                       "algo.prune_min_gain", "algo.constraint_rule", "algo.certificate",
-                      "algo.run_c_icrl", "algo.run_d_icrl")
+                      "algo.run_c_icrl", "algo.run_d_icrl", "algo.c_icrl_beside_learners")
 
 
 def training_config(config: Mapping[str, Any]) -> dict[str, Any]:

@@ -431,8 +431,8 @@ class SACTask:
                       ) -> SACLearnerModel:
         """Each local learner owns a clone of the warmed-up solver, seeded per learner and
         per ``stream`` (0: D-ICRL, 1: C-ICRL), holding its own demonstrations."""
-        # One bar per run: the process holding learner 1 shows it.
-        base = self._warmed_base(progress=0 in local_ids)
+        # One bar per run: the process holding D-ICRL's learner 1 shows it.
+        base = self._warmed_base(progress=stream == 0 and 0 in local_ids)
         solvers = [base.clone(derived_seed(self.seed, 2, stream, v)) for v in local_ids]
         for solver, shard in zip(solvers, shards, strict=True):
             solver.set_demonstrations(shard)  # its own episodes only (solver.demo_fraction)

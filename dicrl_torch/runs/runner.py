@@ -293,15 +293,34 @@ def run_baselines(task: Task, trained_rows: dict[str, dict], *, logger, out: Pat
 
 
 # ---------------------------------------------------------------------- the run's end
+def run_c_icrl(task: Task, spec: TrainerSpec, *, settings: RunSettings, out: Path, logger,
+               ckpt: Checkpoints, communicator, stop: StopOnSignal | None = None) -> dict:
+    """C-ICRL on the pooled demonstrations, trained (checkpointed as ``C-ICRL``,
+    continued from there on resume) and evaluated: its ``learners`` rows and
+    ``history``."""
+    pooled = task.demos  # every learner's trajectories, in learner order
+    c = make_trainer(task, spec, [pooled], communicator, [sum(task.split)], stream=1)
+    if states := ckpt.states("C-ICRL"):
+        c.load_state_dict(states[0])
+    c_icrl = lambda v: "c_icrl"  # noqa: E731
+    train_method("C-ICRL", c, task=task, settings=settings, ckpt=ckpt, logger=logger,
+                 run_of=c_icrl, log_network=False, stop=stop)
+    rows = evaluate_method("C-ICRL", c, task=task, settings=settings, ckpt=ckpt,
+                           logger=logger, run_of=c_icrl, out=out)
+    return {"learners": rows, "history": c.history}
+
+
 def finish(task: Task, settings: RunSettings, spec: TrainerSpec, *, out: Path,
            d_icrl: dict | None, logger, ckpt: Checkpoints, t_start: float, c_icrl_comm,
-           stop: StopOnSignal | None = None) -> dict:
+           stop: StopOnSignal | None = None, c_icrl: dict | None = None) -> dict:
     """C-ICRL, the baselines and the reference rows (in this process), then
     ``results.json``, the table and the figures.
 
     Args:
         d_icrl: the D-ICRL ``learners`` rows, ``history`` and final ``disagreement``;
             None when it was not trained.
+        c_icrl: C-ICRL's :func:`run_c_icrl`, when it ran beside the learner processes;
+            None: run it here.
 
     Returns:
         ``results.json``'s record.
@@ -314,17 +333,11 @@ def finish(task: Task, settings: RunSettings, spec: TrainerSpec, *, out: Path,
                              "learners": d_icrl["learners"]}
         histories["D-ICRL"] = d_icrl["history"]
     if settings.run_c_icrl:
-        pooled = task.demos  # every learner's trajectories, in learner order
-        c = make_trainer(task, spec, [pooled], c_icrl_comm, [sum(task.split)], stream=1)
-        if states := ckpt.states("C-ICRL"):
-            c.load_state_dict(states[0])
-        c_icrl = lambda v: "c_icrl"  # noqa: E731
-        train_method("C-ICRL", c, task=task, settings=settings, ckpt=ckpt, logger=logger,
-                     run_of=c_icrl, log_network=False, stop=stop)
-        methods["C-ICRL"] = {"D": "×", "NATR": "✓", "learners": evaluate_method(
-            "C-ICRL", c, task=task, settings=settings, ckpt=ckpt, logger=logger,
-            run_of=c_icrl, out=out)}
-        histories["C-ICRL"] = c.history
+        if c_icrl is None:
+            c_icrl = run_c_icrl(task, spec, settings=settings, out=out, logger=logger,
+                                ckpt=ckpt, communicator=c_icrl_comm, stop=stop)
+        methods["C-ICRL"] = {"D": "×", "NATR": "✓", "learners": c_icrl["learners"]}
+        histories["C-ICRL"] = c_icrl["history"]
     baseline_rows, baseline_histories, baseline_seconds = run_baselines(
         task, dict(methods), logger=logger, out=out, ckpt=ckpt, stop=stop)
     methods.update(baseline_rows)  # before the experts: the paper's row order
@@ -441,11 +454,18 @@ def agree_on_run_dir(comm, out: Path) -> tuple[Path, str]:
 
 
 def run_learner(comm, task: Task, settings: RunSettings, spec: TrainerSpec, *, out: Path,
-                run_id: str, logger) -> None:
+                run_id: str, logger, sharing: int | None = None) -> None:
     """Learner ``comm.rank``: train on its own shard, evaluate its row, write it to
-    ``learner_rows/rank<r>.json`` and wait for the others."""
+    ``learner_rows/rank<r>.json`` and wait for the others.
+
+    Args:
+        sharing: how many processes share the task's once-per-run work
+            (:meth:`Task.bind_run_dir`): the learners (default), one more when C-ICRL
+            trains beside them (as the last).
+    """
     rank = comm.rank
-    task.bind_run_dir(out, settings.training_config, process=rank, processes=comm.n_learners)
+    task.bind_run_dir(out, settings.training_config, process=rank,
+                      processes=comm.n_learners if sharing is None else sharing)
     shard = task.shards[rank]
     if shard is None:
         raise ValueError(f"Learner {rank} holds no demonstrations in this process.")
