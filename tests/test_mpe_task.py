@@ -527,3 +527,27 @@ def test_learner_processes_share_the_warm_up_lineages(tmp_path, capsys, monkeypa
     assert_same_solution(again.base.solve(eta, cw, 20), whole.solve(eta, cw, 20))
     with pytest.raises(ValueError, match=r"process must lie in \[0, processes\)"):
         tiny_task().bind_run_dir(tmp_path, config, process=2, processes=2)
+
+
+def test_a_plain_warm_up_is_trained_by_process_0_alone(tmp_path, monkeypatch):
+    """One lineage, one chunk, shared by 2 processes: process 1 trains nothing and waits
+    for warmup.pt (here a short wait that times out); process 0 trains it; process 1 of
+    a new start loads exactly that."""
+    from test_sac_state import assert_same_solver
+
+    from dicrl_torch.runs import continuous
+
+    config = {"seed": 0, "solver.warmup_timesteps": 60}
+    monkeypatch.setattr(continuous, "WARMUP_WAIT_S", 0.5)
+    second = tiny_task()
+    second.bind_run_dir(tmp_path, config, process=1, processes=2)
+    with pytest.raises(TimeoutError, match="by learner process 0"):
+        second._warmed_base()
+    assert second.base.num_timesteps == 0  # it waited, it did not train
+    first = tiny_task()
+    first.bind_run_dir(tmp_path, config, process=0, processes=2)
+    trained = first._warmed_base()
+    assert trained.num_timesteps == 60
+    again = tiny_task()
+    again.bind_run_dir(tmp_path, config, process=1, processes=2)
+    assert_same_solver(again._warmed_base(), trained)

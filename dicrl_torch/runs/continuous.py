@@ -277,8 +277,9 @@ class SACTask:
         warm-up together (the learner processes): a warm-up of several lineages
         (``warmup_restarts``) is then shared, process ``p`` training lineages
         ``p, p + processes, ...``; process 0 adopts the best of all (read from
-        ``out/warmup_lineages/``) and writes ``warmup.pt``, which the others load. The
-        result is the one-process warm-up's (the lineages are independent and seeded).
+        ``out/warmup_lineages/``) and writes ``warmup.pt``, which the others load. A
+        warm-up of one lineage and one chunk is process 0's alone. The result is the
+        one-process warm-up's (the lineages are independent and seeded).
         """
         key = json.dumps(training_config, sort_keys=True, default=str)
         self._warmup_file = Path(out) / WARMUP_FILE
@@ -321,12 +322,12 @@ class SACTask:
                 print(f"SAC warm-up loaded from {self._warmup_file} ({summary})", flush=True)
             else:
                 label = "SAC warm-up" if progress else None
-                if self.warmup_restarts == 1 and self.warmup_checks == 1:
+                if self._processes > 1 and self._warmup_file is not None:
+                    done = self._shared_warmup(label)
+                elif self._plain_warmup():
                     sol = self.base.solve(self.eta0, self.cw0, self.warmup_timesteps,
                                           progress=label)
                     done = self.warmup_summary(sol)
-                elif self._processes > 1 and self._warmup_file is not None:
-                    done = self._shared_warmup(label)
                 else:  # no constraint known yet: "success" is reaching the goals
                     sol = self.base.solve_keeping_best(
                         self.eta0, self.cw0, self.warmup_timesteps,
@@ -357,12 +358,22 @@ class SACTask:
                 "deterministic": self.eval_action == "mean",
                 "constraints": torch.zeros(self.base.l_c, dtype=torch.bool)}
 
+    def _plain_warmup(self) -> bool:
+        """One lineage, one chunk: a plain solve, nothing scored."""
+        return self.warmup_restarts == 1 and self.warmup_checks == 1
+
     def _shared_warmup(self, label: str | None) -> str | None:
-        """This process's share of the warm-up's lineages (:meth:`bind_run_dir`). Process
-        0 waits for the others', adopts the best and returns its summary line; the others
-        leave theirs in the run directory and return None."""
+        """This process's share of the warm-up's lineages (:meth:`bind_run_dir`; a plain
+        warm-up is process 0's alone). Process 0 waits for the others', adopts the best
+        and returns its summary line; the others leave theirs in the run directory and
+        return None."""
         from dicrl_torch.solvers.sac import Lineage  # SB3: only where SAC runs
 
+        if self._plain_warmup():
+            if self._process != 0:
+                return None
+            return self.warmup_summary(self.base.solve(self.eta0, self.cw0,
+                                                       self.warmup_timesteps, progress=label))
         p, n, restarts = self._process, self._processes, self.warmup_restarts
         folder = self._warmup_file.parent / WARMUP_LINEAGES_DIR
         mine = list(range(p, restarts, n))
