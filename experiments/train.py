@@ -154,7 +154,8 @@ def run_spawned(cfg, out: Path, t_start: float) -> None:
                               args=(OmegaConf.to_yaml(cfg, resolve=True), str(out), run_id,
                                     sharing)) as learners:
             if beside:
-                torch.set_num_threads(threads)
+                own_threads = torch.get_num_threads()
+                torch.set_num_threads(threads)  # a third process on the learners' cores
                 ckpt = Checkpoints(out / "checkpoint.pt", cfg.resume,
                                    config=settings.training_config)
                 logger = make_logger(cfg, out)
@@ -169,6 +170,7 @@ def run_spawned(cfg, out: Path, t_start: float) -> None:
                     if not learners.failed():
                         raise
                     # A learner failed (and stopped C-ICRL): its error is the news.
+                torch.set_num_threads(own_threads)  # the baselines run alone, as before
             learners.wait()
     except LearnerProcessError as e:
         first = e.tracebacks.get(e.first_failed) if e.first_failed is not None else None
