@@ -64,6 +64,8 @@ WARMUP_LINEAGES_DIR = "warmup_lineages"
 """Where the processes of one run leave the warm-up lineages they trained, for the one
 that trains lineage 0 (:meth:`SACTask.bind_run_dir`); removed once ``warmup.pt`` is
 written."""
+_SAME_RUN_DIR = ("Every learner process must see the same run directory (multi-node runs: "
+                 "hydra.run.dir on a shared file system).")
 WARMUP_WAIT_S = 6 * 3600.0
 """How long a process waits for the others' share of the warm-up (a lineage takes
 minutes; a process that dies is noticed by the spawning process or torchrun, which stops
@@ -325,9 +327,7 @@ class SACTask:
                 if self._processes > 1 and self._warmup_file is not None:
                     done = self._shared_warmup(label)
                 elif self._plain_warmup():
-                    sol = self.base.solve(self.eta0, self.cw0, self.warmup_timesteps,
-                                          progress=label)
-                    done = self.warmup_summary(sol)
+                    done = self._train_plain_warmup(label)
                 else:  # no constraint known yet: "success" is reaching the goals
                     sol = self.base.solve_keeping_best(
                         self.eta0, self.cw0, self.warmup_timesteps,
@@ -362,6 +362,11 @@ class SACTask:
         """One lineage, one chunk: a plain solve, nothing scored."""
         return self.warmup_restarts == 1 and self.warmup_checks == 1
 
+    def _train_plain_warmup(self, label: str | None) -> str:
+        """Train the plain warm-up; its summary line."""
+        return self.warmup_summary(self.base.solve(self.eta0, self.cw0,
+                                                   self.warmup_timesteps, progress=label))
+
     def _shared_warmup(self, label: str | None) -> str | None:
         """This process's share of the warm-up's lineages (:meth:`bind_run_dir`; a plain
         warm-up is process 0's alone). Process 0 waits for the others', adopts the best
@@ -370,10 +375,7 @@ class SACTask:
         from dicrl_torch.solvers.sac import Lineage  # SB3: only where SAC runs
 
         if self._plain_warmup():
-            if self._process != 0:
-                return None
-            return self.warmup_summary(self.base.solve(self.eta0, self.cw0,
-                                                       self.warmup_timesteps, progress=label))
+            return self._train_plain_warmup(label) if self._process == 0 else None
         p, n, restarts = self._process, self._processes, self.warmup_restarts
         folder = self._warmup_file.parent / WARMUP_LINEAGES_DIR
         mine = list(range(p, restarts, n))
@@ -406,9 +408,7 @@ class SACTask:
                 if time.monotonic() > deadline:
                     raise TimeoutError(
                         f"SAC warm-up: lineages {others} did not appear in {folder} within "
-                        f"{WARMUP_WAIT_S:.0f} s. Every learner process must see the same "
-                        f"run directory (multi-node runs: hydra.run.dir on a shared file "
-                        f"system).")
+                        f"{WARMUP_WAIT_S:.0f} s. {_SAME_RUN_DIR}")
                 time.sleep(1.0)
         best = self.base.adopt_best(lineages)
         return summaries[best.restart]
@@ -432,9 +432,7 @@ class SACTask:
             if time.monotonic() > deadline:
                 raise TimeoutError(
                     f"SAC warm-up: {self._warmup_file} was not written within "
-                    f"{WARMUP_WAIT_S:.0f} s by learner process 0. Every learner process "
-                    f"must see the same run directory (multi-node runs: hydra.run.dir on a "
-                    f"shared file system).")
+                    f"{WARMUP_WAIT_S:.0f} s by learner process 0. {_SAME_RUN_DIR}")
             time.sleep(1.0)
         return summary
 
