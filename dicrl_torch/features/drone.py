@@ -138,23 +138,38 @@ class CellOccupancyCostBasis(DroneFeatureBasis):
     def dot(self, states: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """``[...]`` float64 ``compute(states) @ weights`` for numpy joint states
         ``[..., 2, 4]`` and ``weights [201]``, by looking the weights up (a planner's
-        thousands of states per step; no ``[..., 201]`` features built, no input checks)."""
-        G, pos = GRID_CELLS, np.asarray(states, dtype=np.float64)[..., :2]
+        thousands of states per step; no ``[..., 201]`` features built, no input checks).
+        Equal bit for bit to the features' sum, term by term in the same order; each
+        coordinate is floored once into an index array (no float sums over axes of two,
+        which numpy reduces slowly)."""
+        G, states = GRID_CELLS, np.asarray(states, dtype=np.float64)
         w = np.asarray(weights, dtype=np.float64)
-        lo = np.clip(np.floor((pos - self.margin) / CELL_SIZE), 0, G - 1).astype(np.int64)
+        xs, ys = states[..., 0], states[..., 1]  # [..., 2]: both drones
+
+        def cells(coordinate: np.ndarray, shift: float) -> np.ndarray:
+            """The cell index along one axis of ``coordinate - shift``, clamped."""
+            c = coordinate - shift
+            if CELL_SIZE != 1.0:
+                c /= CELL_SIZE
+            np.floor(c, out=c)
+            return np.clip(c, 0, G - 1, out=c).astype(np.int64)
+
         offsets = np.arange(N_DRONES) * G * G
-        total = w[lo[..., 1] * G + lo[..., 0] + offsets]
+        lo_x, lo_y = cells(xs, self.margin), cells(ys, self.margin)
+        lo_row = lo_y * G + offsets
+        total = w.take(lo_row + lo_x)  # [..., 2]
         if self.margin:
-            hi = np.clip(np.floor((pos + self.margin) / CELL_SIZE), 0, G - 1).astype(np.int64)
+            hi_x, hi_y = cells(xs, -self.margin), cells(ys, -self.margin)
             # Each distinct cell of the δ-square once: the x and y of its two corners
             # differ only near an edge.
-            x2, y2 = hi[..., 0] != lo[..., 0], hi[..., 1] != lo[..., 1]
-            total = total + x2 * w[lo[..., 1] * G + hi[..., 0] + offsets]
-            total = total + y2 * w[hi[..., 1] * G + lo[..., 0] + offsets]
-            total = total + (x2 & y2) * w[hi[..., 1] * G + hi[..., 0] + offsets]
-        gap = pos[..., 0, :] - pos[..., 1, :]
-        near = (gap * gap).sum(-1) < (self.proximity_radius + self.margin) ** 2
-        return total.sum(-1) + near * w[-1]
+            x2, y2 = hi_x != lo_x, hi_y != lo_y
+            hi_row = hi_y * G + offsets
+            total += x2 * w.take(lo_row + hi_x)
+            total += y2 * w.take(hi_row + lo_x)
+            total += (x2 & y2) * w.take(hi_row + hi_x)
+        gap_x, gap_y = xs[..., 0] - xs[..., 1], ys[..., 0] - ys[..., 1]
+        near = gap_x * gap_x + gap_y * gap_y < (self.proximity_radius + self.margin) ** 2
+        return (total[..., 0] + total[..., 1]) + near * w[-1]
 
     def true_constraints(self) -> torch.Tensor:
         """``[201]`` bool: for each drone the cells overlapping an obstacle, and the
@@ -277,6 +292,28 @@ class DoorLocationRewardBasis(DroneFeatureBasis):
         feats = torch.stack([progress, closeness], -1)
         feats = torch.where(in_own_door(pos)[..., None], 1.0, feats)
         return self.coefficient * feats.flatten(-2)
+
+    def numpy_features(self, states: np.ndarray) -> np.ndarray:
+        """``[..., 4]`` float64 :meth:`compute` of numpy joint states ``[..., 2, 4]``, equal
+        bit for bit, ~1.5x faster on a planner's batches (no input checks). The distance
+        to the door and the exponential stay torch's kernels, on tensors of the same
+        layout: numpy's ``sqrt(dx² + dy²)`` differs from ``vector_norm`` in the last bit."""
+        states = np.asarray(states, dtype=np.float64)
+        pos = states[..., :2]
+        x, y = pos[..., 0], pos[..., 1]  # [..., 2]: both drones
+        s, g = self.starts.cpu().numpy(), self.doors.cpu().numpy()
+        axis = g - s  # [2, 2]
+        length2 = axis[:, 0] * axis[:, 0] + axis[:, 1] * axis[:, 1]
+        progress = ((x - s[:, 0]) * axis[:, 0] + (y - s[:, 1]) * axis[:, 1]) / length2
+        np.clip(progress, 0.0, 1.0, out=progress)
+        dist = torch.linalg.vector_norm(torch.from_numpy(pos - g), dim=-1)
+        if self.closeness == "linear":
+            closeness = 1.0 - np.clip(dist.numpy() / (ROOM_SIZE * np.sqrt(2.0)), 0.0, 1.0)
+        else:
+            closeness = torch.exp(-dist / self.closeness_length).numpy()
+        feats = np.where(in_own_door(pos)[..., None], 1.0,
+                         np.stack([progress, closeness], -1))
+        return self.coefficient * feats.reshape(*feats.shape[:-2], -1)
 
 
 class FourierRewardBasis(DroneFeatureBasis):
