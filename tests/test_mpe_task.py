@@ -551,3 +551,44 @@ def test_a_plain_warm_up_is_trained_by_process_0_alone(tmp_path, monkeypatch):
     again = tiny_task()
     again.bind_run_dir(tmp_path, config, process=1, processes=2)
     assert_same_solver(again._warmed_base(), trained)
+
+
+def test_a_waiting_process_reads_another_configs_warm_up_once(tmp_path, monkeypatch):
+    """A reused run directory holds warmup.pt and a lineage file of another config:
+    while waiting, a process loads each once (not once a second), and it loads a
+    replacement of this config as soon as it appears."""
+    from dicrl_torch.runs import continuous
+    from dicrl_torch.runs.continuous import WARMUP_FILE, WARMUP_LINEAGES_DIR
+
+    config = {"seed": 0, "solver.warmup_timesteps": 60}
+    stale = {"key": "another config", "summary": "x", "solver": {}, "lineage": {}}
+    torch.save(stale, tmp_path / WARMUP_FILE)
+    (tmp_path / WARMUP_LINEAGES_DIR).mkdir()
+    torch.save(stale, tmp_path / WARMUP_LINEAGES_DIR / "lineage1.pt")
+    loads = []
+    real_load = torch.load
+
+    def counting_load(path, *args, **kwargs):
+        loads.append(Path(path).name)
+        return real_load(path, *args, **kwargs)
+
+    monkeypatch.setattr(continuous.torch, "load", counting_load)
+    monkeypatch.setattr(continuous, "WARMUP_WAIT_S", 3.5)
+    waiting = tiny_task()
+    waiting.bind_run_dir(tmp_path, config, process=1, processes=2)
+    with pytest.raises(TimeoutError, match="by learner process 0"):
+        waiting._warmed_base()
+    assert loads == [WARMUP_FILE]  # ~4 one-second polls, one read
+    loads.clear()
+    adopting = tiny_task(warmup_restarts=2, warmup_checks=1)
+    adopting.bind_run_dir(tmp_path, config, process=0, processes=2)
+    with pytest.raises(TimeoutError, match="lineages \\[1\\] did not appear"):
+        adopting._warmed_base()
+    assert loads.count("lineage1.pt") == 1
+    # process 0 writes this config's warm-up over the stale file: loaded at once
+    trained = tiny_task()
+    trained.bind_run_dir(tmp_path, config, process=0, processes=1)
+    trained._warmed_base()
+    again = tiny_task()
+    again.bind_run_dir(tmp_path, config, process=1, processes=2)
+    assert again._warmed_base().num_timesteps == 60

@@ -31,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+import stat
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -76,6 +77,16 @@ def derived_seed(seed: int, *keys: int) -> int:
     """An independent stream per purpose (learner, C-ICRL, evaluation) from one seed: the
     one derivation of every continuous task's streams."""
     return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
+
+
+def _file_stamp(path: Path) -> tuple[int, int, int] | None:
+    """``(inode, mtime_ns, size)`` of a regular file (an atomic replacement changes it),
+    or None where there is none."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    return (st.st_ino, st.st_mtime_ns, st.st_size) if stat.S_ISREG(st.st_mode) else None
 
 
 class SACTask:
@@ -234,6 +245,7 @@ class SACTask:
         self.shards = list(partition_demonstrations(demos, self.split))
         self._warm = False
         self._warmup_file: Path | None = None  # bind_run_dir
+        self._stale: dict[Path, tuple[int, int, int]] = {}  # files of another config
         self._warmup_key: str | None = None
         self._process, self._processes = 0, 1
         self._paths: list[np.ndarray] = []  # rollouts of the row evaluated last (its map)
@@ -291,17 +303,22 @@ class SACTask:
             raise ValueError(f"process must lie in [0, processes), got process={process!r}, "
                              f"processes={processes!r}.")
         self._process, self._processes = int(process), int(processes)
+        self._stale.clear()
 
     def _load_warmup(self, report: bool = True) -> str | None:
         """Load the bound run directory's warm-up into the base solver; its summary
         line, or None where there is none of this run's config (``report``: say so when
         the file is unreadable)."""
         path = self._warmup_file
-        if path is None or not path.is_file():
+        stamp = None if path is None else _file_stamp(path)
+        if stamp is None or self._stale.get(path) == stamp:
             return None
         try:
             saved = torch.load(path, weights_only=True)  # tensors and plain values only
             if not isinstance(saved, dict) or saved.get("key") != self._warmup_key:
+                # Another config's (a reused run directory; 33 MB for the drones): read
+                # again only once it has been replaced, not at every poll of a wait.
+                self._stale[path] = stamp
                 return None
             summary = str(saved["summary"])
             self.base.load_state_dict(saved["solver"])  # checked before anything changes
@@ -415,15 +432,19 @@ class SACTask:
 
     def _read_lineage(self, path: Path) -> dict | None:
         """A lineage file of this run's config, or None (absent, of another config, or
-        not readable yet)."""
-        if not path.is_file():
+        not readable yet; a file found of another config is read again only once it has
+        been replaced)."""
+        stamp = _file_stamp(path)
+        if stamp is None or self._stale.get(path) == stamp:
             return None
         try:
             record = torch.load(path, weights_only=True)  # tensors and plain values only
         except Exception:  # noqa: BLE001 - written atomically: another run's leftovers
             return None
-        return record if isinstance(record, dict) and record.get("key") == self._warmup_key \
-            else None
+        if not isinstance(record, dict) or record.get("key") != self._warmup_key:
+            self._stale[path] = stamp
+            return None
+        return record
 
     def _wait_for_warmup(self) -> str:
         """Wait for process 0 to write this run's ``warmup.pt`` and load it; its summary."""
