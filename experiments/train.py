@@ -166,10 +166,17 @@ def run_spawned(cfg, out: Path, t_start: float) -> None:
                                             out=out, logger=logger, ckpt=ckpt,
                                             communicator=SimulatedCommunicator(n_learners=1),
                                             stop=stop)
-                except Interrupted:
+                except Exception as e:  # noqa: BLE001 - re-raised unless a learner failed
                     if not learners.failed():
                         raise
-                    # A learner failed (and stopped C-ICRL): its error is the news.
+                    # A learner failed and the watcher's SIGTERM stopped C-ICRL: the
+                    # learner's error is the news. The signal can land inside a checkpoint
+                    # write, where torch's writer turns it into its own RuntimeError (the
+                    # write is atomic: the last checkpoint stays valid).
+                    if not isinstance(e, Interrupted):
+                        print(f"C-ICRL stopped by the signal ({type(e).__name__}: "
+                              f"{str(e).splitlines()[0] if str(e) else ''})",
+                              file=sys.stderr, flush=True)
                 torch.set_num_threads(own_threads)  # the baselines run alone, as before
             learners.wait()
     except LearnerProcessError as e:
