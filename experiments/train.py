@@ -174,9 +174,10 @@ def run_spawned(cfg, out: Path, t_start: float) -> None:
                     # write, where torch's writer turns it into its own RuntimeError (the
                     # write is atomic: the last checkpoint stays valid).
                     if not isinstance(e, Interrupted):
-                        print(f"C-ICRL stopped by the signal ({type(e).__name__}: "
-                              f"{str(e).splitlines()[0] if str(e) else ''})",
-                              file=sys.stderr, flush=True)
+                        first_line = str(e).splitlines()[0] if str(e) else ""
+                        print(f"C-ICRL ended with {type(e).__name__} ({first_line}) while "
+                              f"the failed learner stopped the run", file=sys.stderr,
+                              flush=True)
                 torch.set_num_threads(own_threads)  # the baselines run alone, as before
             learners.wait()
     except LearnerProcessError as e:

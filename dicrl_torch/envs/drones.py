@@ -144,10 +144,6 @@ def _clip(x: Any, lo: float, hi: float) -> Any:
     return x.clamp(lo, hi) if _is_torch(x) else np.clip(x, lo, hi)
 
 
-def _where(cond: Any, a: Any, b: Any) -> Any:
-    return torch.where(cond, a, b) if _is_torch(cond) else np.where(cond, a, b)
-
-
 def _cat(parts: Sequence[Any]) -> Any:
     return torch.cat(list(parts), -1) if _is_torch(parts[0]) else np.concatenate(parts, -1)
 
