@@ -253,6 +253,21 @@ def test_joint_step_numpy_torch_and_batch_agree():
         np.testing.assert_array_equal(r_np.state[~active], state[~active])
 
 
+def _step_variants(rng, pos, vel):
+    """``(dynamics, (state, command, active, noise))`` for a batch of drones at ``pos``
+    with ``vel`` (both ``[B, 2, 2]``): random commands past the bounds and 80 % of the
+    drones flying; the box and the disc, without and with noise, numpy and torch."""
+    B = len(pos)
+    state = np.concatenate([pos, vel], -1)
+    cmd = rng.uniform(-1.3, 1.3, size=(B, 2, 2))
+    active = rng.random((B, 2)) < 0.8
+    noise = 0.02 * rng.standard_normal((B, 2, 2))
+    for dyn in (DroneDynamics(), DroneDynamics(command_set="disc", max_speed=1.5)):
+        for args in ((state, cmd, active, None), (state, cmd, active, noise)):
+            yield dyn, args
+            yield dyn, tuple(None if a is None else torch.as_tensor(a) for a in args)
+
+
 def test_nominal_step_equals_the_nominal_joint_step_bit_for_bit():
     # The planner's model must be the nominal game exactly: same states (signed zeros
     # too) and the same drones still flying, arrivals and walls included.
@@ -260,22 +275,15 @@ def test_nominal_step_equals_the_nominal_joint_step_bit_for_bit():
     B = 512
     pos = rng.uniform(0.0, ROOM_SIZE, size=(B, 2, 2))
     pos[: B // 2, :, 1] = rng.uniform(ROOM_SIZE - 0.6, ROOM_SIZE, size=(B // 2, 2))  # doors
-    state = np.concatenate([pos, rng.uniform(-1.5, 1.5, size=(B, 2, 2))], -1)
-    cmd = rng.uniform(-1.3, 1.3, size=(B, 2, 2))
-    active = rng.random((B, 2)) < 0.8
-    noise = 0.02 * rng.standard_normal((B, 2, 2))
-    for dyn in (DroneDynamics(), DroneDynamics(command_set="disc", max_speed=1.5)):
-        for args in ((state, cmd, active, None), (state, cmd, active, noise)):
-            for x in (args, tuple(None if a is None else torch.as_tensor(a) for a in args)):
-                full = joint_step(*x, dynamics=dyn, constrained=False)
-                lean_state, lean_active = nominal_step(*x, dynamics=dyn)
-                assert (np.asarray(full.reached).any()
-                        and not np.asarray(full.active).all())  # arrivals were tested
-                np.testing.assert_array_equal(np.asarray(lean_state), np.asarray(full.state))
-                np.testing.assert_array_equal(np.signbit(np.asarray(lean_state)),
-                                              np.signbit(np.asarray(full.state)))
-                np.testing.assert_array_equal(np.asarray(lean_active),
-                                              np.asarray(full.active))
+    for dyn, x in _step_variants(rng, pos, rng.uniform(-1.5, 1.5, size=(B, 2, 2))):
+        full = joint_step(*x, dynamics=dyn, constrained=False)
+        lean_state, lean_active = nominal_step(*x, dynamics=dyn)
+        assert (np.asarray(full.reached).any()
+                and not np.asarray(full.active).all())  # arrivals were tested
+        np.testing.assert_array_equal(np.asarray(lean_state), np.asarray(full.state))
+        np.testing.assert_array_equal(np.signbit(np.asarray(lean_state)),
+                                      np.signbit(np.asarray(full.state)))
+        np.testing.assert_array_equal(np.asarray(lean_active), np.asarray(full.active))
 
 
 
@@ -321,21 +329,14 @@ def test_joint_step_equals_a_plain_where_reference_bit_for_bit():
     pos[B // 3: B // 2, 1] = pos[B // 3: B // 2, 0] + 0.1  # collisions
     vel = rng.uniform(-1.5, 1.5, size=(B, 2, 2))
     vel[::7] = -0.0
-    state = np.concatenate([pos, vel], -1)
-    cmd = rng.uniform(-1.3, 1.3, size=(B, 2, 2))
-    active = rng.random((B, 2)) < 0.8
-    noise = 0.02 * rng.standard_normal((B, 2, 2))
-    for dyn in (DroneDynamics(), DroneDynamics(command_set="disc", max_speed=1.5)):
-        for args in ((state, cmd, active, None), (state, cmd, active, noise)):
-            for x in (args, tuple(None if a is None else torch.as_tensor(a) for a in args)):
-                for constrained in (True, False):
-                    ref_state, ref_active = _reference_joint_step(*x, dyn, constrained)
-                    got = joint_step(*x, dynamics=dyn, constrained=constrained)
-                    np.testing.assert_array_equal(np.asarray(got.state), np.asarray(ref_state))
-                    np.testing.assert_array_equal(np.signbit(np.asarray(got.state)),
-                                                  np.signbit(np.asarray(ref_state)))
-                    np.testing.assert_array_equal(np.asarray(got.active),
-                                                  np.asarray(ref_active))
+    for dyn, x in _step_variants(rng, pos, vel):
+        for constrained in (True, False):
+            ref_state, ref_active = _reference_joint_step(*x, dyn, constrained)
+            got = joint_step(*x, dynamics=dyn, constrained=constrained)
+            np.testing.assert_array_equal(np.asarray(got.state), np.asarray(ref_state))
+            np.testing.assert_array_equal(np.signbit(np.asarray(got.state)),
+                                          np.signbit(np.asarray(ref_state)))
+            np.testing.assert_array_equal(np.asarray(got.active), np.asarray(ref_active))
 
 
 # ---- constraints ------------------------------------------------------------------
