@@ -78,7 +78,7 @@ def test_grid_values_stay_where_staying_pays_and_refuse_bad_input():
         grid_values(reward, none, none, steps_per_cell=1.0, gamma=1.0)
 
 
-def _point_planner(seed=0) -> CrossEntropyPlanner:
+def _point_planner(seed=0, replan=1) -> CrossEntropyPlanner:
     """One point agent, ``x' = x + 0.2 a``, goal disc at (2, 0), a wall x in [0.9, 1.1],
     |y| < 1 between; the reward is 1 at the goal (absorbing), the terminal value the
     negative distance to the goal. ``seed``: an int (one problem) or one seed per problem."""
@@ -101,8 +101,8 @@ def _point_planner(seed=0) -> CrossEntropyPlanner:
 
     return CrossEntropyPlanner(step_fn=step, reward_fn=reward, forbidden_fn=wall,
                                terminal_fn=terminal, action_shape=(1, 2), gamma=GAMMA,
-                               horizon=20, knot=4, samples=128, iterations=4, elites=12,
-                               seed=seed)
+                               horizon=20, knot=4, replan=replan, samples=128, iterations=4,
+                               elites=12, seed=seed)
 
 
 def _fly(planner, starts, steps, which=None):
@@ -159,6 +159,45 @@ def test_cross_entropy_planner_batches_independent_problems():
         planner.act(np.zeros((2, 1, 2)), np.ones((2, 1), bool), [1, 1])
     with pytest.raises(ValueError, match="one row per problem"):
         planner.act(np.zeros((1, 1, 2)), np.ones((1, 1), bool), [0, 1])
+
+
+def test_replanning_once_per_knot_flies_each_plan_open_loop_between():
+    """replan=knot: a round of plans only where a knot starts, the planned action held
+    for the knot in between. Checked against the per-step planner itself: a planner that
+    re-plans every step, asked only at those steps (its plan shifted by hand as the held
+    steps pass), chooses the same actions; and the rollouts are knot times fewer."""
+    calls = []
+
+    def counted(planner):
+        step = planner.step_fn
+        planner.step_fn = lambda *a: (calls.append(len(a[0])), step(*a))[1]
+        return planner
+
+    sparse = counted(_point_planner(seed=7, replan=4))
+    start = np.zeros((1, 1, 2))
+    paths, actions = _fly(sparse, start, 60)
+    assert np.linalg.norm(paths[0][-1, 0] - [2.0, 0.0]) < 0.3, "the goal was not reached"
+    assert not sparse.forbidden_fn(paths[0][:, None]).any()
+    acts = np.stack(actions[0])
+    steps = len(acts)
+    for k in range(0, steps, 4):  # each knot's action is held for its 4 steps
+        held = acts[k:k + 4]
+        np.testing.assert_array_equal(held, np.repeat(held[:1], len(held), 0))
+    # The dense planner from the same seed, planning only at the knots' first steps.
+    dense = _point_planner(seed=7)
+    state, active = start.copy(), np.ones((1, 1), bool)
+    for t in range(steps):
+        if t % 4 == 0:
+            np.testing.assert_array_equal(dense.act(state, active)[0], acts[t])
+            dense._held[:] = 0  # the held steps pass without it: shift as act would have
+            dense._mean = np.concatenate([dense._mean[:, 1:], dense._mean[:, -1:]], axis=1)
+        state, active = dense.step_fn(state, active, acts[t][None])
+    # Rollouts: one step_fn call per planned step per round per knot; the flight's own
+    # steps are _fly's calls (one per step).
+    plan_calls = sum(1 for c in calls if c > 1)
+    assert plan_calls == -(-steps // 4) * 4 * 20
+    with pytest.raises(ValueError, match="replan=3 must divide knot=4"):
+        _point_planner(replan=3)
 
 
 def test_cross_entropy_planner_refuses_bad_sizes():

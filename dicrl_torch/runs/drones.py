@@ -41,11 +41,13 @@ from dicrl_torch.solvers.planning import CrossEntropyPlanner, grid_values
 
 __all__ = ["DRONE_BASELINE", "PLANNER_DEFAULTS", "DroneTask", "derived_seed"]
 
-PLANNER_DEFAULTS = {"horizon": 30, "knot": 5, "samples": 256, "iterations": 4, "elites": 25,
-                    "margin": 0.1, "grid_step": 0.25}
+PLANNER_DEFAULTS = {"horizon": 30, "knot": 5, "replan": 1, "samples": 256, "iterations": 4,
+                    "elites": 25, "margin": 0.1, "grid_step": 0.25}
 """``eval_policy="plan"``'s settings (docs/drones.md, "Planning on the learned game"): 3 s
-planned in 6 held commands, 4 rounds of 256 plans; learned cells grown by 0.1 m; the
-terminal value on a 0.25 m grid."""
+planned in 6 held commands, re-planned every step, 4 rounds of 256 plans; learned cells
+grown by 0.1 m; the terminal value on a 0.25 m grid."""
+
+_PLANNER_SIZES = ("horizon", "knot", "replan", "samples", "iterations", "elites")
 
 
 def _features(basis, states: np.ndarray) -> np.ndarray:
@@ -109,6 +111,11 @@ class DroneTask(SACTask):
                     f"margin (dilated(margin), e.g. CellOccupancyCostBasis); "
                     f"{type(cost_basis).__name__} has none: set solver.eval_policy=sac.")
             plan = {**PLANNER_DEFAULTS, **self.planner_settings}
+            # The planner's own checks (horizon, knot, replan, elites), now rather than
+            # after training, where the evaluation builds it.
+            CrossEntropyPlanner(step_fn=None, reward_fn=None, forbidden_fn=None,
+                                terminal_fn=None, action_shape=(1, 2), gamma=0.5,
+                                **{k: plan[k] for k in _PLANNER_SIZES})
             if not plan["margin"] + plan["grid_step"] / 2 < 0.5:
                 # grid_values forbids a centre whose cell grown by both touches a learned one
                 raise ValueError(
@@ -154,8 +161,7 @@ class DroneTask(SACTask):
         return CrossEntropyPlanner(
             step_fn=model, reward_fn=reward, forbidden_fn=entered, terminal_fn=terminal,
             action_shape=(self.base.spec.n_agents, 2), gamma=self.base.gamma, seed=seeds,
-            **{k: settings[k] for k in ("horizon", "knot", "samples", "iterations",
-                                        "elites")})
+            **{k: settings[k] for k in _PLANNER_SIZES})
 
     def _grid_values(self, eta, cost_weights, constraints, settings, dynamics) -> list:
         """Per drone ``[G, G]`` :func:`grid_values` of the learned game (cached for the

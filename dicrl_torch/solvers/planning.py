@@ -123,6 +123,9 @@ class CrossEntropyPlanner:
         action_shape: shape of one action, e.g. ``(N, 2)``; actions lie in ``[-1, 1]``.
         gamma: discount in ``(0, 1)``.
         horizon, knot: steps planned, and steps each planned action is held.
+        replan: re-plan every ``replan`` steps (a divisor of ``knot``); in between the
+            plan's held action is flown as it is. 1 (the default): every step; ``knot``:
+            once per planned action, ``knot`` times fewer rollouts.
         samples, iterations, elites: the cross-entropy method's sizes (per problem).
         init_std: spread of the first round round a zero (or warm) mean.
         seed: one problem's random stream, or a sequence of seeds, one problem each.
@@ -133,15 +136,19 @@ class CrossEntropyPlanner:
 
     def __init__(self, *, step_fn: Callable, reward_fn: Callable, forbidden_fn: Callable,
                  terminal_fn: Callable, action_shape: tuple[int, ...], gamma: float,
-                 horizon: int = 30, knot: int = 5, samples: int = 256, iterations: int = 4,
-                 elites: int = 25, init_std: float = 0.6,
+                 horizon: int = 30, knot: int = 5, replan: int = 1, samples: int = 256,
+                 iterations: int = 4, elites: int = 25, init_std: float = 0.6,
                  seed: int | Sequence[int] = 0) -> None:
-        for name, value in (("horizon", horizon), ("knot", knot), ("samples", samples),
-                            ("iterations", iterations), ("elites", elites)):
+        for name, value in (("horizon", horizon), ("knot", knot), ("replan", replan),
+                            ("samples", samples), ("iterations", iterations),
+                            ("elites", elites)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be a positive int, got {value!r}.")
         if horizon % knot:
             raise ValueError(f"horizon={horizon} must be a multiple of knot={knot}.")
+        if knot % replan:
+            raise ValueError(f"replan={replan} must divide knot={knot} (re-plans fall on the "
+                             f"held action's steps).")
         if elites > samples:
             raise ValueError(f"elites={elites} exceeds samples={samples}.")
         if not 0.0 < gamma < 1.0:
@@ -153,7 +160,7 @@ class CrossEntropyPlanner:
         self.step_fn, self.reward_fn = step_fn, reward_fn
         self.forbidden_fn, self.terminal_fn = forbidden_fn, terminal_fn
         self.action_shape = tuple(action_shape)
-        self.gamma, self.horizon, self.knot = float(gamma), horizon, knot
+        self.gamma, self.horizon, self.knot, self.replan = float(gamma), horizon, knot, replan
         self.samples, self.iterations, self.elites = samples, iterations, elites
         self.init_std = float(init_std)
         self.rngs = [np.random.default_rng(int(s)) for s in seeds]
@@ -228,7 +235,8 @@ class CrossEntropyPlanner:
         mean = self._mean[which]  # [P', K, *A]
         std = np.full_like(mean, self.init_std)
         spare = (None,) * (mean.ndim - 1)
-        for _ in range(self.iterations):
+        rounds = self.iterations if held % self.replan == 0 else 0
+        for _ in range(rounds):
             noise = np.stack([self.rngs[p].standard_normal((self.samples, *mean.shape[1:]))
                               for p in which])
             knots = np.clip(mean[:, None] + std[:, None] * noise, -1.0, 1.0)
