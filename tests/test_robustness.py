@@ -189,6 +189,25 @@ def test_a_checkpoint_from_another_configuration_is_refused(tmp_path, tiny):
         other_k.load_state_dict(t.state_dict())
 
 
+def test_the_planner_of_the_evaluation_is_not_part_of_a_checkpoints_config(tmp_path, tiny):
+    """eval_policy=plan's planner acts after training only: a finished run resumes to be
+    evaluated with another planner, and a checkpoint of an older release, which recorded
+    solver.planner.*, still resumes."""
+    flat = checkpoints.training_config({"seed": 0, "solver": {
+        "timesteps": 500, "planner": {"knot": 5, "replan": 1}}})
+    assert flat == {"seed": 0, "solver.timesteps": 500}
+    t = tiny_dicrl.make_trainer(tiny)
+    t.train(1)
+    path = tmp_path / "checkpoint.pt"
+    config = training_config(compose_train(*TINY))
+    older = {**config, "solver.planner.knot": 5, "solver.planner.samples": 256}
+    checkpoints.Checkpoints(path, False, config=older).save("D-ICRL", t)
+    ck = checkpoints.Checkpoints(path, True, config=config)
+    assert ck.states("D-ICRL")[0]["outer_iteration"] == 1
+    with pytest.raises(ValueError, match="different configuration"):
+        checkpoints.Checkpoints(path, True, config={**config, "seed": 1})
+
+
 @pytest.mark.parametrize("content", [b"", b"not a checkpoint", b"PK\x03\x04truncated"])
 def test_an_unreadable_checkpoint_is_refused(tmp_path, content):
     path = tmp_path / "checkpoint.pt"

@@ -24,16 +24,23 @@ import torch
 from dicrl_torch.io import atomic_write
 
 # What a checkpoint's training state depends on. Left out: how the run is started,
-# logged, evaluated or stopped (resume, logger, eval_episodes, eval_every, threshold, ...),
-# and algo.outer_iterations, so that a finished run can be resumed to train for longer.
+# logged, evaluated or stopped (resume, logger, eval_episodes, eval_every, threshold, the
+# planner of eval_policy=plan, ...), and algo.outer_iterations, so that a finished run can
+# be resumed to train for longer or to be evaluated again.
 # The history's metrics (FPR/FNR/RFD every outer iteration, CR/CVR every eval_every) are
 # evaluations: each was taken with the settings of the run that computed its iteration,
 # and the same overrides on resume give the uninterrupted run's history exactly.
 CHECKPOINT_KEYS = ("seed", "n_demonstrations", "split", "expert_temperature", "env", "features",
                    "solver", "graph", "algo")
-CHECKPOINT_IGNORED = ("solver.progress", "algo.outer_iterations", "algo.threshold",
+CHECKPOINT_IGNORED = ("solver.progress", "solver.planner", "algo.outer_iterations",
+                      "algo.threshold",
                       "algo.prune_min_gain", "algo.constraint_rule", "algo.certificate",
                       "algo.run_c_icrl", "algo.run_d_icrl", "algo.c_icrl_beside_learners")
+
+
+def _ignored(key: str) -> bool:
+    """Whether a flattened config key is, or lies under, a :data:`CHECKPOINT_IGNORED` path."""
+    return any(key == path or key.startswith(path + ".") for path in CHECKPOINT_IGNORED)
 
 
 def training_config(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -124,7 +131,11 @@ class Checkpoints:
                   f"from scratch")
 
     def _check_config(self, saved: dict | None) -> None:
-        if self.config is None or saved is None or saved == self.config:
+        if self.config is None or saved is None:
+            return
+        # A checkpoint of an older release may hold keys ignored since (solver.planner).
+        saved = {k: v for k, v in saved.items() if not _ignored(k)}
+        if saved == self.config:
             return
         raise ValueError(
             f"{self.path} was written with a different configuration "
