@@ -557,3 +557,25 @@ def test_greedy_refuses_progress_of_another_problem_or_setting():
     g.resumable = False  # as the SAC greedy, whose model is a warm-started policy
     with pytest.raises(ValueError, match="cannot be resumed"):
         g.run(resume_from=record)
+
+
+def test_the_runner_runs_a_greedy_that_cannot_resume_again_from_the_start(tmp_path, capsys):
+    """A finished run resumed (e.g. to be evaluated again) must not fail at a greedy
+    whose model is not in the checkpoint (the drones' SAC greedy): the runner runs it
+    from the start, and being seeded it gives the uninterrupted result."""
+    from dicrl_torch.runs.checkpoints import Checkpoints
+    from dicrl_torch.runs.runner import run_greedy
+
+    _, _, solver, cb, reward, demos = identifiable_problem(1.0, n_demos=20)
+    kw = dict(solver=solver, reward=reward, cost_basis=cb, demonstrations=demos, epsilon=0.0,
+              max_constraints=2)
+    path = tmp_path / "checkpoint.pt"
+    first = GreedyConstraintInference(**kw)
+    first.resumable = False
+    done = run_greedy("MCE-greedy", first, Checkpoints(path, False), None)
+    again = GreedyConstraintInference(**kw)
+    again.resumable = False
+    res = run_greedy("MCE-greedy", again, Checkpoints(path, True), None)
+    assert "running it again from the start" in capsys.readouterr().out
+    assert res.added == done.added and res.log_likelihood == done.log_likelihood
+    assert len(res.steps) == len(done.steps)  # every candidate evaluated again

@@ -239,12 +239,20 @@ def evaluate_method(name: str, trainer: DICRL, *, task: Task, settings: RunSetti
 # ---------------------------------------------------------------------- baselines
 def run_greedy(name: str, greedy, ckpt: Checkpoints, stop: StopOnSignal | None):
     """One greedy baseline, checkpointed (as ``name``) after every candidate it evaluates
-    and continued from its saved progress on resume.
+    and continued from its saved progress on resume (a greedy that is not ``resumable``
+    is run again from the start).
 
     Raises:
         Interrupted: ``stop`` caught a signal; the last evaluated candidate is saved.
     """
     saved = ckpt.states(name)
+    record = saved[0]["greedy"] if saved else None
+    if record is not None and not greedy.resumable:
+        # Its model (e.g. SAC's warm-started policy) is not in the checkpoint, only the
+        # constraints it added; seeded, it repeats the same steps from the start.
+        print(f"{name}: its progress in {ckpt.path} cannot be continued (its model is more "
+              f"than the constraint set); running it again from the start", flush=True)
+        record = None
 
     def save(record: dict) -> None:
         ckpt.save_state(name, {"greedy": record,
@@ -255,8 +263,7 @@ def run_greedy(name: str, greedy, ckpt: Checkpoints, stop: StopOnSignal | None):
 
     try:
         with stoppable(stop):  # a first signal lets the current candidate finish
-            return greedy.run(resume_from=saved[0]["greedy"] if saved else None,
-                              on_step=save)
+            return greedy.run(resume_from=record, on_step=save)
     except ResumeMismatchError as e:
         raise ResumeMismatchError(f"{e} (The progress is {name} in {ckpt.path}; resume with "
                                   f"the interrupted run's baselines.epsilon and "
