@@ -544,6 +544,17 @@ def check_config(cfg: DictConfig) -> None:
     if drones and _type_ok(checks, int) and _type_ok(final, int) and 1 <= final < checks:
         problems.append(f"solver.final_checks={checks} exceeds solver.final_timesteps={final}: "
                         f"each scored chunk needs at least one step; lower final_checks.")
+    plan = [OmegaConf.select(cfg, f"solver.planner.{k}", default=None)
+            for k in ("horizon", "knot", "replan")]
+    if drones and all(_type_ok(v, int) and v >= 1 for v in plan):
+        horizon, knot, replan = plan
+        if horizon % knot:
+            problems.append(f"solver.planner.horizon={horizon} must be a multiple of "
+                            f"solver.planner.knot={knot} (whole held commands).")
+        if knot % replan:
+            problems.append(f"solver.planner.replan={replan} must divide "
+                            f"solver.planner.knot={knot} (re-plans fall on a held command's "
+                            f"steps); e.g. 1 or {knot}.")
     if OmegaConf.select(cfg, "algo.run_d_icrl", default=True) is False:
         if drones and OmegaConf.select(cfg, "baselines.run", default=None):
             problems.append("algo.run_d_icrl=false leaves the drone arena's greedy baseline "
