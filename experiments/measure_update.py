@@ -6,7 +6,8 @@
 
 The update is ``DecomposedSAC.train``'s arithmetic as a plain loop, without SB3 or a replay
 buffer: batch 256, a 64x64 squashed-Gaussian actor, two 64x64 critics of ``--columns`` soft-Q
-columns (one per drone), fused Adam, Polyak targets, one torch thread. The kinds:
+columns (one per drone), fused Adam, Polyak targets, ``--threads`` torch threads (1). The
+kinds:
 
 - ``separate``: the two critics as two ``nn.Sequential`` (as shipped);
 - ``ensemble``: the two critics as one network whose layers are ``baddbmm`` over a leading
@@ -148,8 +149,9 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=200)
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--columns", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     args = parser.parse_args()
-    torch.set_num_threads(1)
+    torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     for kind in args.kinds:
         update = make_update(kind, args.columns)
@@ -164,7 +166,8 @@ def main() -> None:
             for x in data:
                 update(*x)
             runs.append((time.perf_counter() - t0) / args.updates * 1e3)
-        print(json.dumps({"kind": kind, "ms_per_update": round(statistics.median(runs), 2),
+        print(json.dumps({"kind": kind, "threads": args.threads,
+                          "ms_per_update": round(statistics.median(runs), 2),
                           "runs": [round(r, 2) for r in runs],
                           "first_5_updates_s": round(first, 2)}), flush=True)
 
