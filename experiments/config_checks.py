@@ -22,6 +22,7 @@ from hydra.utils import get_class, get_object
 from omegaconf import DictConfig, OmegaConf
 
 from dicrl_torch.comm.distributed import DistributedCommunicator
+from dicrl_torch.solvers.planning import check_plan_sizes
 
 
 class ConfigError(ValueError):
@@ -544,17 +545,13 @@ def check_config(cfg: DictConfig) -> None:
     if drones and _type_ok(checks, int) and _type_ok(final, int) and 1 <= final < checks:
         problems.append(f"solver.final_checks={checks} exceeds solver.final_timesteps={final}: "
                         f"each scored chunk needs at least one step; lower final_checks.")
-    plan = [OmegaConf.select(cfg, f"solver.planner.{k}", default=None)
-            for k in ("horizon", "knot", "replan")]
-    if drones and all(_type_ok(v, int) and v >= 1 for v in plan):
-        horizon, knot, replan = plan
-        if horizon % knot:
-            problems.append(f"solver.planner.horizon={horizon} must be a multiple of "
-                            f"solver.planner.knot={knot} (whole held commands).")
-        if knot % replan:
-            problems.append(f"solver.planner.replan={replan} must divide "
-                            f"solver.planner.knot={knot} (re-plans fall on a held command's "
-                            f"steps); e.g. 1 or {knot}.")
+    plan = {k: OmegaConf.select(cfg, f"solver.planner.{k}", default=None)
+            for k in ("horizon", "knot", "replan", "samples", "iterations", "elites")}
+    if drones and all(_type_ok(v, int) and v >= 1 for v in plan.values()):
+        try:  # the planner's own rule, before training rather than at the evaluation
+            check_plan_sizes(**plan)
+        except ValueError as e:
+            problems.append(f"solver.planner: {e}")
     if OmegaConf.select(cfg, "algo.run_d_icrl", default=True) is False:
         if drones and OmegaConf.select(cfg, "baselines.run", default=None):
             problems.append("algo.run_d_icrl=false leaves the drone arena's greedy baseline "

@@ -31,6 +31,8 @@ import time
 import torch
 from torch import nn
 
+from dicrl_torch.solvers.sac.decomposed import squashed_gaussian_sample
+
 BATCH, OBS, ACT, HIDDEN = 256, 8, 4, 64
 
 
@@ -51,12 +53,7 @@ class Actor(nn.Module):
     def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Squashed-Gaussian actions ``[B, ACT]`` and log-densities ``[B, 1]``."""
         h = self.body(obs)
-        mean, std = self.mean(h), self.log_std(h).clamp(-20, 2).exp()
-        gaussian = mean + torch.randn_like(mean) * std
-        action = torch.tanh(gaussian)
-        log_prob = (-((gaussian - mean) ** 2) / (2 * std**2) - std.log()
-                    - math.log(math.sqrt(2 * math.pi))).sum(-1)
-        return action, (log_prob - torch.log(1 - action**2 + 1e-6).sum(-1)).reshape(-1, 1)
+        return squashed_gaussian_sample(self.mean(h), self.log_std(h).clamp(-20, 2))
 
 
 class SeparateCritics(nn.Module):

@@ -190,7 +190,7 @@ def test_table2_config_is_checked():
                        ("solver.final_restarts=0", "solver.final_restarts=0 is invalid"),
                        ("solver.final_score=best", "'penalised_return' or 'learned_success'"),
                        ("solver.final_margin=0.5", "metres the last solve's penalty cells"),
-                       ("solver.planner.replan=3", r"replan=3 must divide solver.planner.knot=5"),
+                       ("solver.planner.replan=3", r"solver.planner: replan=3 must divide knot=5"),
                        ("solver.planner.horizon=32", "must be a multiple of"),
                        ("+solver.solver.ent_coeff=1", "did you mean 'ent_coef'")]:
         with pytest.raises(config_checks.ConfigError, match=match):

@@ -534,10 +534,16 @@ def test_greedy_resumed_from_any_saved_step_ends_as_the_uninterrupted_run(proble
     assert 0.0 <= resumed.seconds - records[-1]["seconds"] < 0.5 * resume_seconds
 
 
-def test_greedy_refuses_progress_of_another_problem_or_setting():
+def _two_constraint_greedy_kwargs() -> dict:
+    """A 2-constraint MCE greedy on the identifiable problem (20 demonstrations)."""
     _, _, solver, cb, reward, demos = identifiable_problem(1.0, n_demos=20)
-    kw = dict(solver=solver, reward=reward, cost_basis=cb, demonstrations=demos, epsilon=0.0,
-              max_constraints=2)
+    return dict(solver=solver, reward=reward, cost_basis=cb, demonstrations=demos,
+                epsilon=0.0, max_constraints=2)
+
+
+def test_greedy_refuses_progress_of_another_problem_or_setting():
+    kw = _two_constraint_greedy_kwargs()
+    reward = kw["reward"]
     records: list[dict] = []
     GreedyConstraintInference(**kw).run(on_step=records.append)
     record = records[0]
@@ -566,9 +572,7 @@ def test_the_runner_runs_a_greedy_that_cannot_resume_again_from_the_start(tmp_pa
     from dicrl_torch.runs.checkpoints import Checkpoints
     from dicrl_torch.runs.runner import run_greedy
 
-    _, _, solver, cb, reward, demos = identifiable_problem(1.0, n_demos=20)
-    kw = dict(solver=solver, reward=reward, cost_basis=cb, demonstrations=demos, epsilon=0.0,
-              max_constraints=2)
+    kw = _two_constraint_greedy_kwargs()
     path = tmp_path / "checkpoint.pt"
     first = GreedyConstraintInference(**kw)
     first.resumable = False

@@ -37,7 +37,7 @@ from dicrl_torch.envs.drones import (
     start_support,
 )
 from dicrl_torch.runs.continuous import GREEDY_BASELINE, SACTask, derived_seed
-from dicrl_torch.solvers.planning import CrossEntropyPlanner, grid_values
+from dicrl_torch.solvers.planning import CrossEntropyPlanner, check_plan_sizes, grid_values
 
 __all__ = ["DRONE_BASELINE", "PLANNER_DEFAULTS", "DroneTask", "derived_seed"]
 
@@ -111,11 +111,8 @@ class DroneTask(SACTask):
                     f"margin (dilated(margin), e.g. CellOccupancyCostBasis); "
                     f"{type(cost_basis).__name__} has none: set solver.eval_policy=sac.")
             plan = {**PLANNER_DEFAULTS, **self.planner_settings}
-            # The planner's own checks (horizon, knot, replan, elites), now rather than
-            # after training, where the evaluation builds it.
-            CrossEntropyPlanner(step_fn=None, reward_fn=None, forbidden_fn=None,
-                                terminal_fn=None, action_shape=(1, 2), gamma=0.5,
-                                **{k: plan[k] for k in _PLANNER_SIZES})
+            # now rather than after training, where the evaluation builds the planner
+            check_plan_sizes(**{k: plan[k] for k in _PLANNER_SIZES})
             if not plan["margin"] + plan["grid_step"] / 2 < 0.5:
                 # grid_values forbids a centre whose cell grown by both touches a learned one
                 raise ValueError(

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CrossEntropyPlanner", "grid_values"]
+__all__ = ["CrossEntropyPlanner", "check_plan_sizes", "grid_values"]
 
 FORBIDDEN_VALUE = -1e9
 """The return of a plan, or the value of a grid centre, inside a learned constraint."""
@@ -99,6 +99,24 @@ def grid_values(reward: np.ndarray, forbidden: np.ndarray, goal: np.ndarray, *,
                        f"max_iterations or tol.")
 
 
+def check_plan_sizes(*, horizon: int, knot: int, replan: int, samples: int, iterations: int,
+                     elites: int) -> None:
+    """Raise ValueError unless :class:`CrossEntropyPlanner`'s sizes fit together: positive
+    ints, whole held commands in the horizon, re-plans on a command's steps, elites among
+    the samples (also for configs checked before any planner is built)."""
+    for name, value in (("horizon", horizon), ("knot", knot), ("replan", replan),
+                        ("samples", samples), ("iterations", iterations), ("elites", elites)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}.")
+    if horizon % knot:
+        raise ValueError(f"horizon={horizon} must be a multiple of knot={knot}.")
+    if knot % replan:
+        raise ValueError(f"replan={replan} must divide knot={knot} (re-plans fall on the "
+                         f"held action's steps).")
+    if elites > samples:
+        raise ValueError(f"elites={elites} exceeds samples={samples}.")
+
+
 class CrossEntropyPlanner:
     """Receding-horizon cross-entropy planning in a batched model, for several
     independent problems at once (e.g. one per evaluation episode).
@@ -139,18 +157,8 @@ class CrossEntropyPlanner:
                  horizon: int = 30, knot: int = 5, replan: int = 1, samples: int = 256,
                  iterations: int = 4, elites: int = 25, init_std: float = 0.6,
                  seed: int | Sequence[int] = 0) -> None:
-        for name, value in (("horizon", horizon), ("knot", knot), ("replan", replan),
-                            ("samples", samples), ("iterations", iterations),
-                            ("elites", elites)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}.")
-        if horizon % knot:
-            raise ValueError(f"horizon={horizon} must be a multiple of knot={knot}.")
-        if knot % replan:
-            raise ValueError(f"replan={replan} must divide knot={knot} (re-plans fall on the "
-                             f"held action's steps).")
-        if elites > samples:
-            raise ValueError(f"elites={elites} exceeds samples={samples}.")
+        check_plan_sizes(horizon=horizon, knot=knot, replan=replan, samples=samples,
+                         iterations=iterations, elites=elites)
         if not 0.0 < gamma < 1.0:
             raise ValueError(f"gamma must lie in (0, 1), got {gamma!r}.")
         seeds = [seed] if isinstance(seed, (int, np.integer)) else list(seed)

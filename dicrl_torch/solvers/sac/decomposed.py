@@ -57,7 +57,7 @@ from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
-__all__ = ["DecomposedCritic", "DecomposedSAC", "DecomposedSACPolicy"]
+__all__ = ["DecomposedCritic", "DecomposedSAC", "DecomposedSACPolicy", "squashed_gaussian_sample"]
 
 _SQUASH_EPSILON = 1e-6  # SB3's SquashedDiagGaussianDistribution epsilon
 
@@ -68,6 +68,19 @@ def _polyak(params: list[torch.Tensor], targets: list[torch.Tensor], tau: float)
     with torch.no_grad():
         torch._foreach_mul_(targets, 1.0 - tau)
         torch._foreach_add_(targets, params, alpha=tau)
+
+
+def squashed_gaussian_sample(mean: torch.Tensor, log_std: torch.Tensor
+                             ) -> tuple[torch.Tensor, torch.Tensor]:
+    """SB3's squashed diagonal Gaussian: actions ``tanh(mean + ε std)`` ``[B, d_a]`` and
+    their log-densities ``[B, 1]``, with SB3's random draw and arithmetic (bit for bit)."""
+    std = log_std.exp()
+    gaussian = mean + torch.empty_like(mean).normal_() * std  # Normal.rsample
+    action = torch.tanh(gaussian)
+    log_prob = (-((gaussian - mean) ** 2) / (2 * std**2) - std.log()
+                - math.log(math.sqrt(2 * math.pi))).sum(-1)
+    log_prob = log_prob - torch.log(1 - action**2 + _SQUASH_EPSILON).sum(-1)
+    return action, log_prob.reshape(-1, 1)
 
 
 class DecomposedCritic(ContinuousCritic):
@@ -157,13 +170,7 @@ class DecomposedSAC(SAC):
             action, log_prob = self.actor.action_log_prob(obs)
             return action, log_prob.reshape(-1, 1)
         mean, log_std, _ = self.actor.get_action_dist_params(obs)
-        std = log_std.exp()
-        gaussian = mean + torch.empty_like(mean).normal_() * std  # Normal.rsample
-        action = torch.tanh(gaussian)
-        log_prob = (-((gaussian - mean) ** 2) / (2 * std**2) - std.log()
-                    - math.log(math.sqrt(2 * math.pi))).sum(-1)
-        log_prob = log_prob - torch.log(1 - action**2 + _SQUASH_EPSILON).sum(-1)
-        return action, log_prob.reshape(-1, 1)
+        return squashed_gaussian_sample(mean, log_std)
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         self.policy.set_training_mode(True)
