@@ -209,3 +209,79 @@ def test_cross_entropy_planner_refuses_bad_sizes():
         CrossEntropyPlanner(**kwargs, samples=20, elites=50)
     with pytest.raises(ValueError, match="samples must be a positive int"):
         CrossEntropyPlanner(**kwargs, samples=0)
+
+
+# ---------------------------------------------------------------- pruning by planning
+def _corridor(route_of):
+    """A fake planner over 6 one-hot cell features: ``route_of(cw, forbidden)`` names the
+    cells its one path visits; a path is ``[L+1, 1, 1]`` cell indices."""
+    def plan_paths(cw, forbidden):
+        cells = route_of(np.asarray(cw), np.asarray(forbidden))
+        return [np.asarray([0, *cells, 5], dtype=np.float64).reshape(-1, 1, 1)]
+
+    def features(path):
+        return np.eye(6)[np.asarray(path, dtype=np.int64).reshape(-1)]
+    return plan_paths, features
+
+
+def _open(cw, forbidden, j):
+    """Cell j can be flown through: neither forbidden nor penalised."""
+    return not forbidden[j] and cw[j] == 0.0
+
+
+def test_pruning_drops_a_constraint_no_plan_enters_without_it():
+    """Two parallel routes (cells 1 and 2) and a cell no route crosses (3): planning
+    without 1 flies through 1, without 2 (1 kept) through 2, without 3 nowhere near it.
+    Weakest first, 3 alone is dropped, its ω_c set to 0; the others are untouched."""
+    from dicrl_torch.runs.continuous import prune_unneeded_constraints
+
+    def route(cw, forbidden):
+        return [1] if _open(cw, forbidden, 1) else [2] if _open(cw, forbidden, 2) else [4]
+
+    plan_paths, features = _corridor(route)
+    cw = np.array([0.0, 0.6, 0.7, 0.55, 0.2, 0.0])
+    learned = cw >= 0.5
+    kept_cw, kept, removed = prune_unneeded_constraints(cw, learned, plan_paths=plan_paths,
+                                                        features=features)
+    assert removed == [3]
+    assert kept.tolist() == [False, True, True, False, False, False]
+    assert kept_cw.tolist() == [0.0, 0.6, 0.7, 0.0, 0.2, 0.0]
+    assert learned.tolist() == [False, True, True, True, False, False]  # not modified
+
+
+def test_pruning_judges_the_whole_removed_set():
+    """Cells 1 and 2 block one route together: without 1 alone the plan still detours
+    (2 blocks it), so 1 goes; without 2 as well the plan crosses 1 — not 2 — and 2 must
+    stay. A rule that looked at the candidate alone would drop both and open the route."""
+    from dicrl_torch.runs.continuous import prune_unneeded_constraints
+
+    def route(cw, forbidden):
+        if _open(cw, forbidden, 1) and _open(cw, forbidden, 2):
+            return [1]  # the route through the pair is open: it enters 1 only
+        return [4]
+
+    plan_paths, features = _corridor(route)
+    cw = np.array([0.0, 0.5, 0.9, 0.0, 0.0, 0.0])
+    _, kept, removed = prune_unneeded_constraints(cw, cw >= 0.5, plan_paths=plan_paths,
+                                                  features=features)
+    assert removed == [1] and kept.tolist() == [False, False, True, False, False, False]
+
+
+def test_pruning_tests_ties_by_index_and_nothing_without_a_learned_set():
+    from dicrl_torch.runs.continuous import prune_unneeded_constraints
+
+    calls = []
+
+    def plan_paths(cw, forbidden):
+        calls.append(np.flatnonzero(forbidden).tolist())
+        return [np.zeros((2, 1, 1))]
+
+    features = _corridor(None)[1]
+    cw = np.array([0.0, 0.6, 0.6, 0.0, 0.0, 0.0])
+    _, kept, removed = prune_unneeded_constraints(cw, cw >= 0.5, plan_paths=plan_paths,
+                                                  features=features)
+    assert removed == [1, 2] and calls == [[2], []] and not kept.any()
+    calls.clear()
+    out = prune_unneeded_constraints(np.zeros(6), np.zeros(6, bool), plan_paths=plan_paths,
+                                     features=features)
+    assert out[2] == [] and calls == []
