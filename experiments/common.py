@@ -129,7 +129,7 @@ def sac_task_settings(cfg) -> dict:
         final_restarts=s.final_restarts, final_score=s.final_score,
         final_margin=s.get("final_margin", 0.0), eval_policy=s.get("eval_policy", "sac"),
         planner=OmegaConf.to_container(s.planner) if s.get("planner") else None,
-        prune_episodes=s.get("prune_episodes", 0), threshold=a.threshold,
+        threshold=a.threshold,
         baseline=bool(b.run), baseline_penalty=b.get("penalty", 10.0),
         baseline_timesteps=b.get("timesteps", 3000),
         baseline_epsilon=None if b.epsilon is None else float(b.epsilon),

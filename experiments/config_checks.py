@@ -117,9 +117,6 @@ DRONE_RULES: list[tuple[str, type, Callable[[Any], bool] | None, str, str]] = [
      "learned_success"),
     ("solver.eval_policy", str, lambda x: x in ("sac", "plan"),
      "'sac' or 'plan' (the last solve's SAC policy, or planning on the learned game)", "sac"),
-    ("solver.prune_episodes", int, _ge(0),
-     "an int >= 0 (planned episodes per learned constraint tested for pruning; 0: none)",
-     "10"),
     ("solver.planner.horizon", int, _ge(1), "an int >= 1 (steps planned)", "30"),
     ("solver.planner.knot", int, _ge(1), "an int >= 1 dividing the horizon", "5"),
     ("solver.planner.replan", int, _ge(1),
@@ -163,7 +160,7 @@ KNOWN_KEYS = {
     "solver": {"timesteps", "warmup_timesteps", "warmup_restarts", "warmup_checks",
                "final_timesteps", "final_checks",
                "final_restarts", "final_score", "final_margin", "n_eval_episodes",
-               "eval_action", "eval_policy", "planner", "prune_episodes", "solver"},
+               "eval_action", "eval_policy", "planner", "solver"},
     "solver.planner": {"horizon", "knot", "replan", "samples", "iterations", "elites",
                        "margin", "grid_step"},
     "features": {"reward", "cost"},
@@ -555,11 +552,6 @@ def check_config(cfg: DictConfig) -> None:
             check_plan_sizes(**plan)
         except ValueError as e:
             problems.append(f"solver.planner: {e}")
-    prune = OmegaConf.select(cfg, "solver.prune_episodes", default=0)
-    if (drones and _type_ok(prune, int) and prune > 0
-            and OmegaConf.select(cfg, "solver.eval_policy", default="sac") != "plan"):
-        problems.append(f"solver.prune_episodes={prune} prunes by planning on the learned "
-                        f"game, which needs solver.eval_policy=plan; set one or the other.")
     if OmegaConf.select(cfg, "algo.run_d_icrl", default=True) is False:
         if drones and OmegaConf.select(cfg, "baselines.run", default=None):
             problems.append("algo.run_d_icrl=false leaves the drone arena's greedy baseline "

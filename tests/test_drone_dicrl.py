@@ -192,12 +192,9 @@ def test_table2_config_is_checked():
                        ("solver.final_margin=0.5", "metres the last solve's penalty cells"),
                        ("solver.planner.replan=3", r"solver.planner: replan=3 must divide knot=5"),
                        ("solver.planner.horizon=32", "must be a multiple of"),
-                       ("solver.prune_episodes=-1", "solver.prune_episodes=-1 is invalid"),
                        ("+solver.solver.ent_coeff=1", "did you mean 'ent_coef'")]:
         with pytest.raises(config_checks.ConfigError, match=match):
             config_checks.check_config(_compose(bad))
-    with pytest.raises(config_checks.ConfigError, match="needs solver.eval_policy=plan"):
-        config_checks.check_config(_compose("solver.eval_policy=sac", "solver.prune_episodes=2"))
 
 
 def test_a_margin_needs_a_cost_basis_that_can_grow():
@@ -348,37 +345,3 @@ def test_measure_planner_reports_a_planned_true_game_row(capsys):
     assert rows[0]["episodes"] == 2 and rows[0]["planner"]["samples"] == 16
     assert 0 <= rows[0]["SR"] <= 1 and rows[0]["env_steps"] > 0
     assert rows[0]["checksum"] == rows[1]["checksum"]
-
-
-def test_pruning_by_planning_drops_a_far_cell_and_keeps_the_block():
-    """The true game's reward and set plus a learned cell in the far top-left corner,
-    where no route to drone 0's door (top right) passes: planning without it never enters
-    it, so it is pruned (ω_c 0); drone 0's block cells, which its plans cross once
-    allowed, are kept. The rates are of the pruned set."""
-    from common import drone_task
-
-    task = drone_task(_compose("solver.eval_policy=plan", "solver.prune_episodes=4"))
-    truth = task.cost_basis.true_constraints().numpy()
-    corner = np.zeros((1, 2, 4))
-    corner[0, 0, :2], corner[0, 1, :2] = (0.5, 9.5), (9.0, 1.0)
-    far = int(np.flatnonzero(task.cost_basis.compute(torch.as_tensor(corner))[0, :].numpy()
-                             * task.cost_basis.agent_shares().numpy()[:, 0])[0])
-    assert not truth[far]
-    learned = truth.copy()
-    learned[far] = True
-    cw = np.where(learned, 0.8, 0.0)
-    cw[far] = 0.55  # the weakest: tested first
-    eta = np.array([1.0, 1.0, 1.0, 1.0, -10.0])
-    kept_cw, kept, removed = task.prune_by_planning(task.base, eta, cw, learned, seed=0)
-    assert removed[0] == far and not kept[far] and kept_cw[far] == 0.0
-    names = list(task.cost_basis.names)
-    assert kept[names.index("drone0/cell(4,5)")] and kept[names.index("drone0/cell(5,5)")]
-    again = task.prune_by_planning(task.base, eta, cw, learned, seed=0)
-    assert again[2] == removed  # common random numbers: the same decisions
-
-
-def test_pruning_needs_planning_learners():
-    from common import drone_task
-
-    with pytest.raises(ValueError, match="prune_episodes=3 prunes by planning"):
-        drone_task(_compose("solver.eval_policy=sac", "solver.prune_episodes=3"))

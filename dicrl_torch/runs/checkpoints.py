@@ -25,15 +25,14 @@ from dicrl_torch.io import atomic_write
 
 # What a checkpoint's training state depends on. Left out: how the run is started,
 # logged, evaluated or stopped (resume, logger, eval_episodes, eval_every, threshold, the
-# planner of eval_policy=plan and its pruning, ...), and algo.outer_iterations, so that a
-# finished run can be resumed to train for longer or to be evaluated again.
+# planner of eval_policy=plan, ...), and algo.outer_iterations, so that a finished run can
+# be resumed to train for longer or to be evaluated again.
 # The history's metrics (FPR/FNR/RFD every outer iteration, CR/CVR every eval_every) are
 # evaluations: each was taken with the settings of the run that computed its iteration,
 # and the same overrides on resume give the uninterrupted run's history exactly.
 CHECKPOINT_KEYS = ("seed", "n_demonstrations", "split", "expert_temperature", "env", "features",
                    "solver", "graph", "algo")
-CHECKPOINT_IGNORED = ("solver.progress", "solver.planner", "solver.prune_episodes",
-                      "algo.outer_iterations",
+CHECKPOINT_IGNORED = ("solver.progress", "solver.planner", "algo.outer_iterations",
                       "algo.threshold",
                       "algo.prune_min_gain", "algo.constraint_rule", "algo.certificate",
                       "algo.run_c_icrl", "algo.run_d_icrl", "algo.c_icrl_beside_learners")

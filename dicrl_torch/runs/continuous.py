@@ -51,7 +51,7 @@ from dicrl_torch.io import atomic_write
 from dicrl_torch.metrics import false_negative_rate, false_positive_rate, learned_constraints
 
 __all__ = ["EVAL_ACTIONS", "FINAL_SCORES", "GREEDY_BASELINE", "SACTask", "derived_seed",
-           "feature_strip", "prune_unneeded_constraints"]
+           "feature_strip"]
 
 EVAL_ACTIONS: tuple[str, ...] = ("mean", "sampled")
 EVAL_POLICIES: tuple[str, ...] = ("sac", "plan")
@@ -77,51 +77,6 @@ def derived_seed(seed: int, *keys: int) -> int:
     """An independent stream per purpose (learner, C-ICRL, evaluation) from one seed: the
     one derivation of every continuous task's streams."""
     return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
-
-
-def prune_unneeded_constraints(cost_weights: np.ndarray, learned: np.ndarray, *,
-                                plan_paths, features, progress: str | None = None
-                                ) -> tuple[np.ndarray, np.ndarray, list[int]]:
-    """Drop the learned constraints that planning on the learned game does not need.
-
-    Backward elimination over the learned features, weakest (smallest ``ω_c,j``, then
-    lowest index) first: feature ``j`` is removed (``ω_c,j = 0``, no longer forbidden)
-    when no path planned without it, and without the ones removed before it, enters any
-    of them. A constraint whose removal leaves the planned flights where they were
-    explains none of the demonstrations' avoidance: under the maximum-entropy model its
-    likelihood gain is the probability the unconstrained policy puts on entering it,
-    which planning (the low-temperature limit) puts at 0. The test is on the whole
-    removed set, not on each feature alone, as in
-    :meth:`~dicrl_torch.algos.dicrl.DICRL.prune_constraints`: two
-    cells that block the same route are each unneeded while the other stays.
-
-    Args:
-        cost_weights: ``[l_c]`` learned ω_c.
-        learned: ``[l_c]`` bool, the learned set (``ω_c >= threshold``).
-        plan_paths: ``plan_paths(ω_c [l_c], forbidden [l_c] bool)`` -> the joint-state
-            paths ``[L+1, N, d_s]`` of planned episodes in the nominal game.
-        features: ``features(path [L+1, N, d_s])`` -> ``[L+1, l_c]`` cost features; a
-            feature above 0 is entered (indicator-like features: cells, proximity).
-        progress: a tqdm bar over the candidates with this label, or None.
-
-    Returns:
-        (ω_c ``[l_c]`` with the removed features at 0, the kept set ``[l_c]`` bool, the
-        removed features' indices in the order removed).
-    """
-    cw, mask = np.array(cost_weights, dtype=np.float64), np.array(learned, dtype=bool)
-    candidates = sorted(np.flatnonzero(mask).tolist(), key=lambda j: (float(cw[j]), j))
-    if progress is not None:
-        from tqdm.auto import tqdm
-        candidates = tqdm(candidates, desc=progress, leave=False)
-    removed: list[int] = []
-    for j in candidates:
-        trial_cw, trial_mask = cw.copy(), mask.copy()
-        trial_cw[j], trial_mask[j] = 0.0, False
-        dropped = [*removed, j]
-        if not any((features(p)[:, dropped] > 0).any() for p in plan_paths(trial_cw, trial_mask)):
-            cw, mask = trial_cw, trial_mask
-            removed.append(j)
-    return cw, mask, removed
 
 
 def _file_stamp(path: Path) -> tuple[int, int, int] | None:
@@ -174,11 +129,6 @@ class SACTask:
             ``"plan"``: no last solve, each learner acts by planning on its learned
             ``(η̄, ω_c)`` in the nominal model (:meth:`make_planner`, the task's; the
             drone arena has one), with ``planner`` its settings.
-        prune_episodes: with ``eval_policy="plan"``, before a learner's row, drop each
-            learned constraint that ``prune_episodes`` episodes planned on the learned
-            game without it never enter (:func:`prune_unneeded_constraints`; starts drawn
-            from the start distribution, which the learner knows); the row's set and
-            planner are the pruned ones. 0: no pruning.
         threshold: ``ω_c,j >= threshold`` marks a learned constraint.
         start_states: ``[P, N, d_s]`` joint states spanning the start distribution's
             support (:meth:`SACLearnerModel.start_features`); None: unknown.
@@ -205,8 +155,7 @@ class SACTask:
                  final_timesteps: int | None = None, final_checks: int = 1,
                  final_restarts: int = 1, final_score: str = "penalised_return",
                  final_margin: float = 0.0, eval_policy: str = "sac",
-                 planner: dict | None = None, prune_episodes: int = 0,
-                 threshold: float = 0.5, start_states: Any = None,
+                 planner: dict | None = None, threshold: float = 0.5, start_states: Any = None,
                  baseline: bool = False,
                  baseline_penalty: float = 10.0, baseline_timesteps: int = 3000,
                  baseline_epsilon: float | None = None,
@@ -277,10 +226,6 @@ class SACTask:
                              f"in, which {type(self).__name__} does not give (the drone "
                              f"arena does); use eval_policy='sac'.")
         self.eval_policy, self.planner_settings = str(eval_policy), dict(planner or {})
-        self.prune_episodes = check_int("prune_episodes", prune_episodes, 0)
-        if self.prune_episodes and self.eval_policy != "plan":
-            raise ValueError(f"prune_episodes={prune_episodes} prunes by planning, which needs "
-                             f"eval_policy='plan'; set prune_episodes=0 or eval_policy='plan'.")
         self.threshold = check_finite("threshold", threshold)
         if not 0.0 < self.threshold <= 1.0:
             raise ValueError(f"threshold must lie in (0, 1], got {threshold!r}.")
@@ -604,32 +549,6 @@ class SACTask:
                 "SR_plan": ev.success_rate, "CVR_plan": ev.violation_rate,
                 "SR": ev.success_rate, "CVR": ev.violation_rate}
 
-    def prune_by_planning(self, solver, eta: np.ndarray, cost_weights: np.ndarray,
-                          constraints: np.ndarray, seed: int, progress: str | None = None
-                          ) -> tuple[np.ndarray, np.ndarray, list[int]]:
-        """:func:`prune_unneeded_constraints` of one learned game ``(η [l_r + 1],
-        ω_c [l_c], constraints [l_c] bool)``: each candidate's ``prune_episodes``
-        episodes planned in the nominal game, on starts and planner streams drawn from
-        ``seed`` (the same for every candidate: common random numbers)."""
-        n = self.prune_episodes
-        seeds = [derived_seed(seed, k) for k in range(n)]
-
-        def plan_paths(cw: np.ndarray, forbidden: np.ndarray) -> list:
-            planner = self.make_planner(eta, cw, forbidden, seeds)
-
-            def actor(states, active, episodes):
-                return planner.act(states, active, episodes).reshape(len(episodes), -1)
-
-            ev = solver.evaluate(n, true_game=False, trajectories=True,
-                                 rng=np.random.default_rng(seed), actor=actor)
-            return list(ev.paths)
-
-        def features(path) -> np.ndarray:
-            return self.cost_basis.compute(torch.as_tensor(np.asarray(path))).numpy()
-
-        return prune_unneeded_constraints(cost_weights, constraints, plan_paths=plan_paths,
-                                          features=features, progress=progress)
-
     def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True) -> dict:
         """A last solve on the learned ``(η̄, ω_c)``, then the true-game row (with
         ``eval_policy="plan"``: planning on it instead of a last solve)."""
@@ -637,24 +556,14 @@ class SACTask:
         mask = learned_constraints(cw, self.threshold)
         solver = trainer.learner_model.inner_solver(i)
         if self.eval_policy == "plan":
-            eta, cw = np.asarray(eta, dtype=np.float64), np.asarray(cw, dtype=np.float64)
-            extra: dict[str, Any] = {}
-            if self.prune_episodes:
-                before = self.rates(mask)
-                cw, mask, removed = self.prune_by_planning(
-                    solver, eta, cw, mask, derived_seed(self.seed, 7, i),
-                    progress=self._planning_label(trainer, i, "pruning") if progress
-                    else None)
-                names = list(self.cost_basis.names)
-                extra = {"FPR_before_pruning": before["FPR"],
-                         "FNR_before_pruning": before["FNR"],
-                         "pruned": [names[j] for j in removed]}
-            row = self.evaluate_planned(solver, eta, cw, mask, derived_seed(self.seed, 4, i),
+            row = self.evaluate_planned(solver, np.asarray(eta, dtype=np.float64),
+                                        np.asarray(cw, dtype=np.float64), mask,
+                                        derived_seed(self.seed, 4, i),
                                         progress=self._planning_label(trainer, i) if progress
                                         else None)
             row.update(self.rates(mask), multiplier=float(eta[-1]),
                        reward_weights=eta[:-1].tolist(), policy_timesteps=None,
-                       final_checks=None, **extra)
+                       final_checks=None)
             return row
         f = self.final
         kept = solver.solve_keeping_best(
@@ -669,19 +578,16 @@ class SACTask:
         return row
 
     @staticmethod
-    def _planning_label(trainer: DICRL, i: int, doing: str = "planning") -> str:
-        """A planning bar's label: what (planned evaluation, pruning) for which learner
-        of how many (C-ICRL: the one)."""
+    def _planning_label(trainer: DICRL, i: int) -> str:
+        """The planned evaluation's bar: which learner of how many (C-ICRL: the one)."""
         if trainer.n_learners == 1:
-            return f"{doing} the centralized learner"
-        return f"{doing} learner {trainer.local[i] + 1} of {trainer.n_learners}"
+            return "planning the centralized learner"
+        return f"planning learner {trainer.local[i] + 1} of {trainer.n_learners}"
 
     def evaluation_settings(self) -> dict[str, Any]:
-        # prune_episodes only when on: rows saved before it existed stay valid.
-        pruning = {"prune_episodes": self.prune_episodes} if self.prune_episodes else {}
         return {"threshold": self.threshold, "eval_episodes": self.eval_episodes,
                 "eval_action": self.eval_action, "eval_policy": self.eval_policy,
-                "planner": self.planner_settings, **pruning,
+                "planner": self.planner_settings,
                 **{f"final_{k}": v for k, v in self.final.items()}}
 
     def row_scalars(self, row: dict) -> list[tuple[str, float, int]]:
