@@ -345,3 +345,28 @@ def test_measure_planner_reports_a_planned_true_game_row(capsys):
     assert rows[0]["episodes"] == 2 and rows[0]["planner"]["samples"] == 16
     assert 0 <= rows[0]["SR"] <= 1 and rows[0]["env_steps"] > 0
     assert rows[0]["checksum"] == rows[1]["checksum"]
+
+
+def test_prune_study_counts_the_plans_that_enter_a_removed_feature(tmp_path, capsys):
+    """experiments/prune_study.py on a finished run's learned game (here the true game plus
+    a far corner cell): the far cell is entered by no plan once removed, drone 0's block
+    cell by some; one JSON line per asked feature."""
+    import prune_study  # experiments/ is on pytest's pythonpath
+    from common import drone_task
+
+    task = drone_task(_compose())
+    names = list(task.cost_basis.names)
+    cw = np.where(task.cost_basis.true_constraints().numpy(), 0.8, 0.0)
+    cw[names.index("drone0/cell(0,9)")] = 0.6
+    row = {"reward_weights": [1.0, 1.0, 1.0, 1.0], "multiplier": -10.0}
+    results = {"methods": {m: {"learners": [row]} for m in ("D-ICRL", "C-ICRL")},
+               "history": {m: [{"cost_weights": [cw.tolist()]}] for m in ("D-ICRL", "C-ICRL")}}
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(results))
+    prune_study.main([str(path), "--episodes", "2", "experiment=table2_quick",
+                      "--only", "D-ICRL:0:drone0/cell(0,9)", "D-ICRL:0:drone0/cell(4,5)"])
+    lines = [json.loads(x) for x in capsys.readouterr().out.strip().splitlines()]
+    by = {x["feature"]: x for x in lines}
+    assert set(by) == {"drone0/cell(0,9)", "drone0/cell(4,5)"}
+    assert by["drone0/cell(0,9)"]["episodes_entering"] == 0 and not by["drone0/cell(0,9)"]["true"]
+    assert by["drone0/cell(4,5)"]["episodes_entering"] >= 1 and by["drone0/cell(4,5)"]["true"]
