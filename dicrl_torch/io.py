@@ -4,19 +4,54 @@ half of one (docs/design.md §2)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
+import threading
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
+
+_HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM recorded inside, raised again (in order) on leaving.
+
+    A handler that raises (the runs' ``Interrupted``) inside ``torch.save`` raises in the
+    middle of torch's zip writer, which reports it as ``RuntimeError: ... unexpected pos``:
+    the run then exits 1 with a traceback instead of 130/143 with its resume command.
+    Held, the signal is handled once the file is in place. The Python handlers are swapped
+    rather than the signal mask set: a mask is per thread, and torch's worker threads
+    would still take the signal. Python runs handlers, and lets them be set, in the main
+    thread only; elsewhere nothing is held. A write that hangs is then stopped by SIGKILL
+    only (writes here take seconds at most)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    # getsignal() None: a handler not set from Python, which could not be put back.
+    held = [sig for sig in _HELD_SIGNALS if signal.getsignal(sig) is not None]
+    previous = {sig: signal.signal(sig, lambda signum, frame: caught.append(signum))
+                for sig in held}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for signum in caught:
+            signal.raise_signal(signum)
 
 
 def atomic_write(path: str | os.PathLike[str], write: Callable[[BinaryIO], Any]) -> Path:
     """Call ``write(f)`` on a new binary file next to ``path``, flush it to disk, then
-    move it onto ``path`` (``os.replace``). An exception (or an interrupting signal)
-    removes the temporary file and leaves ``path`` as it was. Parent directories are
-    created; ``path`` is used as given.
+    move it onto ``path`` (``os.replace``). An exception removes the temporary file and
+    leaves ``path`` as it was. SIGINT and SIGTERM arriving meanwhile (in the main thread)
+    are handled once the new file is in place. Parent directories are created; ``path``
+    is used as given.
 
     Returns:
         ``path`` as a :class:`~pathlib.Path`.
@@ -27,13 +62,14 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[BinaryIO], Any])
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     # Mode 0o666 lets the umask decide the permissions, as for open(); O_EXCL never
     # clobbers anything.
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        with _signals_held():
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            with os.fdopen(fd, "wb") as f:
+                write(f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
