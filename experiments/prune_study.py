@@ -61,21 +61,17 @@ def main(argv: list[str] | None = None) -> None:
             allowed[j] = False
             without = cw.copy()
             without[j] = 0.0  # neither forbidden nor penalised
-            planner = task.make_planner(eta, without, allowed, list(range(args.episodes)))
-
-            def actor(states, active, episodes, planner=planner):
-                return planner.act(states, active, episodes).reshape(len(episodes), -1)
-
-            ev = task.base.evaluate(args.episodes, true_game=False, trajectories=True,
-                                    rng=np.random.default_rng(0), actor=actor)
+            # The evaluation's common starts and planner streams, the same for every feature.
+            row = task.evaluate_planned(task.base, eta, without, allowed, seed=0,
+                                        true_game=False)
             entered = 0
-            for path in ev.paths:
+            for path in task._paths:
                 phi = task.cost_basis.compute(torch.as_tensor(np.asarray(path))).numpy()
                 entered += bool((phi[:, j] > 0).any())
             print(json.dumps({"method": method, "learner": i, "feature": names[j],
                               "true": bool(truth[j]), "omega_c": round(float(cw[j]), 3),
                               "episodes_entering": entered, "episodes": args.episodes,
-                              "SR_nominal": ev.success_rate,
+                              "SR_nominal": row["SR"],
                               "s": round(time.perf_counter() - t0, 1)}), flush=True)
 
 

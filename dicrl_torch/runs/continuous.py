@@ -529,19 +529,21 @@ class SACTask:
         raise NotImplementedError(f"{type(self).__name__} has no model to plan in.")
 
     def evaluate_planned(self, solver, eta: np.ndarray, cost_weights: np.ndarray,
-                         constraints: np.ndarray, seed: int, progress: str | None = None
-                         ) -> dict:
+                         constraints: np.ndarray, seed: int, progress: str | None = None,
+                         true_game: bool = True) -> dict:
         """The true-game row of planning on the learned game: ``eval_episodes`` episodes on
         the evaluation's common starts, each its own planning problem with its own random
         stream, planned together (``SR_plan``, ``CVR_plan``; SAC's columns None);
-        ``progress`` labels a bar over the finished episodes."""
+        ``progress`` labels a bar over the finished episodes. ``true_game=False`` flies the
+        nominal game instead (studies of the learned game; not a table row). The paths
+        are left in ``self._paths``."""
         planner = self.make_planner(eta, cost_weights, constraints,
                                     [derived_seed(seed, 5, k) for k in range(self.eval_episodes)])
 
         def actor(states: np.ndarray, active: np.ndarray, episodes: np.ndarray) -> np.ndarray:
             return planner.act(states, active, episodes).reshape(len(episodes), -1)
 
-        ev = solver.evaluate(self.eval_episodes, true_game=True, trajectories=True,
+        ev = solver.evaluate(self.eval_episodes, true_game=true_game, trajectories=True,
                              rng=self.evaluation_rng(), actor=actor, progress=progress)
         self._paths = list(ev.paths)
         return {"CR_mean": None, "CR_std": None, "RFD": None, "SR_mean": None,
