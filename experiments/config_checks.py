@@ -22,7 +22,7 @@ from hydra.utils import get_class, get_object
 from omegaconf import DictConfig, OmegaConf
 
 from dicrl_torch.comm.distributed import DistributedCommunicator
-from dicrl_torch.solvers.planning import check_plan_sizes
+from dicrl_torch.solvers.planning import PLAN_SIZES, check_plan_sizes
 
 
 class ConfigError(ValueError):
@@ -546,7 +546,7 @@ def check_config(cfg: DictConfig) -> None:
         problems.append(f"solver.final_checks={checks} exceeds solver.final_timesteps={final}: "
                         f"each scored chunk needs at least one step; lower final_checks.")
     plan = {k: OmegaConf.select(cfg, f"solver.planner.{k}", default=None)
-            for k in ("horizon", "knot", "replan", "samples", "iterations", "elites")}
+            for k in PLAN_SIZES}
     if drones and all(_type_ok(v, int) and v >= 1 for v in plan.values()):
         try:  # the planner's own rule, before training rather than at the evaluation
             check_plan_sizes(**plan)

@@ -31,7 +31,7 @@ import time
 import torch
 from torch import nn
 
-from dicrl_torch.solvers.sac.decomposed import squashed_gaussian_sample
+from dicrl_torch.solvers.sac.decomposed import polyak_, squashed_gaussian_sample
 
 BATCH, OBS, ACT, HIDDEN = 256, 8, 4, 64
 
@@ -126,9 +126,7 @@ def make_update(kind: str, columns: int, alpha: float = 0.1, gamma: float = 0.99
         actor_opt.zero_grad()
         loss.backward(inputs=actor_params)
         actor_opt.step()
-        with torch.no_grad():
-            torch._foreach_mul_(targets, 1 - tau)
-            torch._foreach_add_(targets, params, alpha=tau)
+        polyak_(params, targets, tau)
 
     update.actor, update.critic = actor, critic  # for a test that an update trains them
     return update

@@ -37,7 +37,12 @@ from dicrl_torch.envs.drones import (
     start_support,
 )
 from dicrl_torch.runs.continuous import GREEDY_BASELINE, SACTask, derived_seed
-from dicrl_torch.solvers.planning import CrossEntropyPlanner, check_plan_sizes, grid_values
+from dicrl_torch.solvers.planning import (
+    PLAN_SIZES,
+    CrossEntropyPlanner,
+    check_plan_sizes,
+    grid_values,
+)
 
 __all__ = ["DRONE_BASELINE", "PLANNER_DEFAULTS", "DroneTask", "derived_seed"]
 
@@ -46,8 +51,6 @@ PLANNER_DEFAULTS = {"horizon": 30, "knot": 5, "replan": 1, "samples": 256, "iter
 """``eval_policy="plan"``'s settings (docs/drones.md, "Planning on the learned game"): 3 s
 planned in 6 held commands, re-planned every step, 4 rounds of 256 plans; learned cells
 grown by 0.1 m; the terminal value on a 0.25 m grid."""
-
-_PLANNER_SIZES = ("horizon", "knot", "replan", "samples", "iterations", "elites")
 
 
 def _features(basis, states: np.ndarray) -> np.ndarray:
@@ -112,7 +115,7 @@ class DroneTask(SACTask):
                     f"{type(cost_basis).__name__} has none: set solver.eval_policy=sac.")
             plan = {**PLANNER_DEFAULTS, **self.planner_settings}
             # now rather than after training, where the evaluation builds the planner
-            check_plan_sizes(**{k: plan[k] for k in _PLANNER_SIZES})
+            check_plan_sizes(**{k: plan[k] for k in PLAN_SIZES})
             if not plan["margin"] + plan["grid_step"] / 2 < 0.5:
                 # grid_values forbids a centre whose cell grown by both touches a learned one
                 raise ValueError(
@@ -158,7 +161,7 @@ class DroneTask(SACTask):
         return CrossEntropyPlanner(
             step_fn=model, reward_fn=reward, forbidden_fn=entered, terminal_fn=terminal,
             action_shape=(self.base.spec.n_agents, 2), gamma=self.base.gamma, seed=seeds,
-            **{k: settings[k] for k in _PLANNER_SIZES})
+            **{k: settings[k] for k in PLAN_SIZES})
 
     def _grid_values(self, eta, cost_weights, constraints, settings, dynamics) -> list:
         """Per drone ``[G, G]`` :func:`grid_values` of the learned game (cached for the

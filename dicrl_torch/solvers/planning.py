@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CrossEntropyPlanner", "check_plan_sizes", "grid_values"]
+__all__ = ["PLAN_SIZES", "CrossEntropyPlanner", "check_plan_sizes", "grid_values"]
 
 FORBIDDEN_VALUE = -1e9
 """The return of a plan, or the value of a grid centre, inside a learned constraint."""
@@ -97,6 +97,10 @@ def grid_values(reward: np.ndarray, forbidden: np.ndarray, goal: np.ndarray, *,
         values = best
     raise RuntimeError(f"grid_values did not converge in {max_iterations} sweeps; raise "
                        f"max_iterations or tol.")
+
+
+PLAN_SIZES: tuple[str, ...] = ("horizon", "knot", "replan", "samples", "iterations", "elites")
+"""The planner's integer sizes, :func:`check_plan_sizes`' keywords (a config's, a task's)."""
 
 
 def check_plan_sizes(*, horizon: int, knot: int, replan: int, samples: int, iterations: int,
