@@ -18,8 +18,9 @@ from gymnasium import spaces
 from mpe2 import simple_spread_v3
 
 from dicrl_torch.demos.continuous import ContinuousDemonstrations, record_demonstrations
+from dicrl_torch.demos.mpe_experts import ViaPointController
 from dicrl_torch.envs.joint import JointAgentEnv
-from dicrl_torch.envs.mpe import ConstrainedSpread, ViaPointController
+from dicrl_torch.envs.mpe import ConstrainedSpread
 from dicrl_torch.features.continuous import PositionCellBasis, RandomFourierBasis
 from dicrl_torch.solvers.sac import SACConstrainedSolver, discounted_demo_feature_sums
 

@@ -1,6 +1,6 @@
-"""Tests of the constrained MPE ``simple_spread`` (dicrl_torch/envs/mpe.py) and of the
-joint-agent gymnasium wrapper of any Box-action PettingZoo game (dicrl_torch/envs/joint.py);
-issue 27."""
+"""Tests of the constrained MPE ``simple_spread`` (dicrl_torch/envs/mpe/), its experts
+(dicrl_torch/demos/mpe_experts.py) and the joint-agent gymnasium wrapper of any Box-action
+PettingZoo game (dicrl_torch/envs/joint.py); issue 27."""
 
 from __future__ import annotations
 
@@ -13,19 +13,17 @@ from gymnasium.utils.env_checker import check_env
 from mpe2 import simple_spread_v3
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
+from dicrl_torch.demos.mpe_experts import NominalController, ViaPointController, run_episode
 from dicrl_torch.envs.joint import JointAgentEnv
 from dicrl_torch.envs.mpe import (
     MAX_SPEED,
     START_MARGIN,
     SUCCESS_RADIUS,
     ConstrainedSpread,
-    NominalController,
     SpreadLayout,
-    ViaPointController,
     covering_agents,
     landmarks_covered,
     pairwise_too_close,
-    run_episode,
     sorted_assignment,
 )
 

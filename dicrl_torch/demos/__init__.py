@@ -1,7 +1,8 @@
-"""Expert demonstrations: storage, validation, partitioning over learners and their
-discounted feature sums (the drone arena's pairs are :mod:`dicrl_torch.demos.drone_demos`;
-any continuous multi-agent environment's episodes, recorded from a PettingZoo
-``ParallelEnv``, are :mod:`dicrl_torch.demos.continuous`).
+"""Expert demonstrations: generation, storage, validation, partitioning over learners and
+their discounted feature sums (the drone arena's pairs are
+:mod:`dicrl_torch.demos.drone_demos`; the constrained spread's experts are
+:mod:`dicrl_torch.demos.mpe_experts`; any continuous multi-agent environment's episodes,
+recorded from a PettingZoo ``ParallelEnv``, are :mod:`dicrl_torch.demos.continuous`).
 
 All kinds of demonstrations are :class:`Trajectories`, split by the one
 :func:`partition_demonstrations`.

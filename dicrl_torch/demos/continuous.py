@@ -1,5 +1,5 @@
 """Demonstrations of any continuous multi-agent environment: one validated ``.npz``
-format, and a recorder for any PettingZoo ``ParallelEnv`` (issue 27).
+format, and a recorder for any PettingZoo ``ParallelEnv``.
 
 Users who bring their own environment, experts and feature networks hand their
 trajectories to the library in this one format. A set of ``m`` episodes of ``N`` agents

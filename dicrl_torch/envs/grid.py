@@ -49,7 +49,7 @@ SCOBEE_FORBIDDEN_ACTIONS: tuple[str, ...] = ("NE", "NW")
 # by number of experts (docs/design.md §3). Each expert starts uniformly in the free cells
 # of its rectangle: with 2 experts, expert 1 anywhere left of the wall and expert 2 anywhere
 # right of it; with 3, expert 1 keeps the bottom-left block and expert 3 the top-left one
-# (the sets must be disjoint). Measured (experiments/identifiability.py --varied: 100
+# (the sets must be disjoint). Measured (experiments/studies/identifiability.py --varied: 100
 # demonstrations of optimal experts, seed 0, shared basis): all 14 true constraints are
 # required, with 2 experts and with 3, where fixed starts leave 8 and 4 undetermined.
 SCOBEE_START_REGIONS: dict[int, tuple[tuple[int, int, int, int], ...]] = {

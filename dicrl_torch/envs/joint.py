@@ -6,7 +6,7 @@ The joint action is the concatenation of the agents' (flattened) ``Box`` actions
 ``possible_agents`` order; the joint observation is the concatenation of their
 (flattened) observations, or a joint state (``env.state()`` or a function of the env).
 The wrapper knows nothing of a particular game: it is what lets D-ICRL run on a
-third-party game (issue 27; the first is mpe2's ``simple_spread``,
+third-party game (the first is mpe2's ``simple_spread``,
 :mod:`dicrl_torch.envs.mpe`). A discrete-action game is refused before anything runs,
 with the agent, its space and the fix named.
 

@@ -1,4 +1,4 @@
-"""Feature bases of any continuous multi-agent environment (issue 27).
+"""Feature bases of any continuous multi-agent environment.
 
 A basis here is an ``nn.Module`` without trainable parameters of
 ``env_kind = "continuous"`` mapping joint states ``[..., N, d_s]`` (per agent its state

@@ -1,5 +1,5 @@
 """Reward features of the constrained MPE ``simple_spread``
-(:class:`~dicrl_torch.envs.mpe.ConstrainedSpread`; issue 27).
+(:class:`~dicrl_torch.envs.mpe.ConstrainedSpread`).
 
 :class:`LandmarkRewardBasis` maps joint states ``[..., N, d_s]`` (per agent ``x, y,
 vx, vy``: what ``ConstrainedSpread.state()`` gives and
@@ -21,7 +21,7 @@ Exponential closeness rather than linear: it peaks sharply at the landmark, so t
 sitting *on* it pays clearly more than hovering near it (the drones' reward basis made
 the same choice, docs/drones.md). ``σ`` trades that peak against the gradient far from
 the landmarks: the default 0.6 (6 success radii) gives a SAC warm-up from the start
-region a usable signal; 0.3 did markedly less well (issue 27's MPE task).
+region a usable signal; 0.3 did markedly less well.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The constrained MPE ``simple_spread`` as a run's task (issue 27): the first
+"""The constrained MPE ``simple_spread`` as a run's task: the first
 third-party game through the same runner and trainer as the grid world and the drones.
 
 The game is :class:`~dicrl_torch.envs.mpe.ConstrainedSpread` (mpe2's ``simple_spread``
@@ -9,7 +9,7 @@ reads the flattened joint state ``[N * 4]`` (``x, y, vx, vy`` per agent), and th
 feature bases the joint state ``[N, 4]``. The steps (shared with every continuous task,
 :class:`~dicrl_torch.runs.continuous.SACTask`):
 
-1. **Experts.** :class:`~dicrl_torch.envs.mpe.ViaPointController` (around the disc in
+1. **Experts.** :class:`~dicrl_torch.demos.mpe_experts.ViaPointController` (around the disc in
    lanes, start delays that keep the agents apart) flown in the true game and recorded
    with :func:`~dicrl_torch.demos.continuous.record_demonstrations` (joint states of
    ``env.state()``); an episode is kept only if the env's own verdict is a success
@@ -42,7 +42,7 @@ feature bases the joint state ``[N, 4]``. The steps (shared with every continuou
 4. **Identifiability** of the true constraint features (``results.json``'s
    ``identifiability``): *demonstrated*, accrued by the demonstrations (or positive on
    the start distribution's support); *required*, accrued by
-   :class:`~dicrl_torch.envs.mpe.NominalController` 's rollouts from the demonstrations'
+   :class:`~dicrl_torch.demos.mpe_experts.NominalController` 's rollouts from the demonstrations'
    starts but not by the demonstrations (the data show the experts avoiding what an
    unconstrained team uses); *undetermined*, neither (no data can tell it from a free
    feature). A simple, rollout-based version of the grid's classes (docs/design.md §6).
@@ -71,16 +71,14 @@ from dicrl_torch.demos.continuous import (
     load_continuous_demonstrations,
     record_demonstrations,
 )
+from dicrl_torch.demos.mpe_experts import NominalController, ViaPointController, run_episode
 from dicrl_torch.envs.joint import JointAgentEnv
 from dicrl_torch.envs.mpe import (
     SUCCESS_RADIUS,
     ConstrainedSpread,
-    NominalController,
     SpreadLayout,
-    ViaPointController,
     landmarks_covered,
     render_spread,
-    run_episode,
     sample_starts,
 )
 from dicrl_torch.features.continuous import PositionCellBasis
@@ -259,7 +257,7 @@ class MPETask(SACTask):
         seed: seeds the demonstrations, the clones and the evaluation.
         demos: the demonstrations (``ContinuousDemonstrations`` or the path of its
             ``.npz``), or None to record ``sum(split)`` of the via-point experts.
-        expert_kwargs: :class:`~dicrl_torch.envs.mpe.ViaPointController` 's keyword
+        expert_kwargs: :class:`~dicrl_torch.demos.mpe_experts.ViaPointController` 's keyword
             arguments (``clearance``, ``cruise_speed``, ...).
         true_constraints: ``[l_c]`` bool; None: no ground truth (FPR, FNR and the
             identifiability are ``null``); ``"auto"`` (default): for a

@@ -9,8 +9,8 @@ network: receding-horizon search for the action sequence of highest learned retu
 
 never entering a learned constraint (``ω_c,j >= threshold``, grown by a margin), with ``V``
 a value of the position alone that sees round the learned obstacles (:func:`grid_values`).
-This module holds the two game-free pieces; the drone arena's glue is in
-:mod:`dicrl_torch.runs.drones` (docs/drones.md, "Planning on the learned game").
+This module holds the two game-free pieces; the drone arena's are in
+:mod:`dicrl_torch.solvers.drone_planning` (docs/drones.md, "Planning on the learned game").
 
 - :func:`grid_values`: for one agent flying at a top speed between the centres of a square
   grid, the value of each centre under a per-centre reward, with forbidden centres and
