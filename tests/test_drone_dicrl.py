@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from tiny_train import TRAIN
+from tiny_train import TRAIN, train_cli
 
 from dicrl_torch.algos.dicrl import DICRL, StepSizes
 from dicrl_torch.algos.greedy import SACGreedyConstraintInference
@@ -24,7 +24,7 @@ from dicrl_torch.demos import partition_demonstrations
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations
 from dicrl_torch.envs.drones import JointDroneEnv, in_obstacle, start_support
 from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
-from dicrl_torch.runs.drones import PLANNER_DEFAULTS
+from dicrl_torch.solvers.drone_planning import PLANNER_DEFAULTS
 from dicrl_torch.solvers.sac import SACConstrainedSolver, discounted_demo_feature_sums
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -222,9 +222,7 @@ TINY = ["experiment=table2_quick", "comm=simulated", "env.arena.max_steps=20", "
 
 
 def test_table2_entry_point_end_to_end(tmp_path):
-    out = subprocess.run([sys.executable, str(TRAIN),
-                          f"hydra.run.dir={tmp_path}", *TINY], capture_output=True, text=True,
-                         cwd=ROOT, timeout=600)
+    out = train_cli(tmp_path, *TINY)
     assert out.returncode == 0, out.stderr[-3000:]
     res = json.loads((tmp_path / "results.json").read_text())
     methods = res["methods"]
@@ -250,8 +248,7 @@ def test_table2_entry_point_with_planning_learners(tmp_path):
     small = ["solver.eval_policy=plan", "solver.planner.samples=16",
              "solver.planner.iterations=2", "solver.planner.horizon=10",
              "solver.planner.elites=4"]
-    out = subprocess.run([sys.executable, str(TRAIN), f"hydra.run.dir={tmp_path}", *TINY,
-                          *small], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    out = train_cli(tmp_path, *TINY, *small)
     assert out.returncode == 0, out.stderr[-3000:]
     res = json.loads((tmp_path / "results.json").read_text())
     for name in ("D-ICRL", "C-ICRL"):
@@ -319,10 +316,11 @@ def test_planning_on_the_true_game_flies_both_drones_round_the_block():
     task = drone_task(_compose("eval_episodes=2", "solver.eval_policy=plan"))
     truth = task.cost_basis.true_constraints().numpy()
     eta = np.array([1.0, 1.0, 1.0, 1.0, -10.0])
-    row = task.evaluate_planned(task.base, eta, truth.astype(np.float64), truth, seed=0)
+    row, paths = task.evaluate_planned(task.base, eta, truth.astype(np.float64), truth, seed=0)
     assert row["SR"] == 1.0 and row["CVR"] == 0.0 and row["SR_plan"] == 1.0
     assert row["SR_mean"] is None  # no SAC policy was flown
-    for path in task._paths:
+    assert len(paths) == 2
+    for path in paths:
         assert not np.asarray(in_obstacle(path[:, :, :2])).any()
     values = task._grid_values(eta, truth.astype(np.float64), truth,
                                {**PLANNER_DEFAULTS}, task.base.env_factory().arena.dynamics)
@@ -331,9 +329,9 @@ def test_planning_on_the_true_game_flies_both_drones_round_the_block():
 
 
 def test_measure_planner_reports_a_planned_true_game_row(capsys):
-    """experiments/measure_planner.py flies the planner on the true game with the true
-    set; the same settings twice give the same flights (checksum)."""
-    import measure_planner  # experiments/ is on pytest's pythonpath
+    """experiments/studies/measure_planner.py flies the planner on the true game with the
+    true set; the same settings twice give the same flights (checksum)."""
+    from studies import measure_planner  # experiments/ is on pytest's pythonpath
 
     small = ["--episodes", "2", "experiment=table2_quick", "solver.planner.samples=16",
              "solver.planner.iterations=1", "solver.planner.elites=4",
@@ -348,11 +346,11 @@ def test_measure_planner_reports_a_planned_true_game_row(capsys):
 
 
 def test_prune_study_counts_the_plans_that_enter_a_removed_feature(tmp_path, capsys):
-    """experiments/prune_study.py on a finished run's learned game (here the true game plus
-    a far corner cell): the far cell is entered by no plan once removed, drone 0's block
-    cell by some; one JSON line per asked feature."""
-    import prune_study  # experiments/ is on pytest's pythonpath
+    """experiments/studies/prune_study.py on a finished run's learned game (here the true
+    game plus a far corner cell): the far cell is entered by no plan once removed, drone
+    0's block cell by some; one JSON line per asked feature."""
     from common import drone_task
+    from studies import prune_study  # experiments/ is on pytest's pythonpath
 
     task = drone_task(_compose())
     names = list(task.cost_basis.names)

@@ -1,13 +1,15 @@
-"""experiments/measure_update.py times the same update three ways: its ensemble critics
-must compute what the separate critics compute (else the comparison is of two networks)."""
+"""experiments/studies/measure_update.py times the same update three ways: its ensemble
+critics must compute what the separate critics compute (else the comparison is of two
+networks), and its Polyak step is SB3's arithmetic (as DecomposedSAC's)."""
 
 from __future__ import annotations
 
 import json
 import sys
 
-import measure_update  # experiments/ is on pytest's pythonpath
 import torch
+from stable_baselines3.common.utils import polyak_update
+from studies import measure_update  # experiments/ is on pytest's pythonpath
 
 
 def test_the_ensemble_critics_are_the_separate_critics_batched():
@@ -38,3 +40,13 @@ def test_every_kind_runs_an_update_and_reports(capsys, monkeypatch):
         update(*measure_update.batch(2))
         after = [*update.actor.parameters(), *update.critic.parameters()]
         assert all(not torch.equal(b, a) for b, a in zip(before, after, strict=True)), kind
+
+
+def test_the_polyak_step_is_sb3s_bit_for_bit():
+    torch.manual_seed(0)
+    params = [torch.randn(16, 12), torch.randn(16)]
+    ours = [torch.randn(16, 12), torch.randn(16)]
+    sb3 = [t.clone() for t in ours]
+    measure_update.polyak(params, ours, 0.02)
+    polyak_update(params, sb3, 0.02)
+    assert all(torch.equal(a, b) for a, b in zip(ours, sb3, strict=True))

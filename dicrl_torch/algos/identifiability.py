@@ -53,7 +53,7 @@ accrued (and the true experts' demonstrations show such last moves too).
 cells, or the product of the varied-start sets). Every demonstration must start where P0 has mass.
 
 **Cost.** One backward solve per classified undemonstrated feature plus the sparse
-forward pass (``experiments/identifiability.py`` prints the time per candidate).
+forward pass (``experiments/studies/identifiability.py`` prints the time per candidate).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """What every continuous game's task shares when its learners are SAC solvers
-(docs/design.md §2.3, §7; issue 27): :class:`SACTask`.
+(docs/design.md §2.3, §7): :class:`SACTask`.
 
 A continuous task (the constrained MPE's :class:`~dicrl_torch.runs.mpe.MPETask`, the
 drone arena's :class:`~dicrl_torch.runs.drones.DroneTask`) runs the same steps whatever
@@ -33,7 +33,7 @@ import json
 import shutil
 import stat
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -248,7 +248,9 @@ class SACTask:
         self._stale: dict[Path, tuple[int, int, int]] = {}  # files of another config
         self._warmup_key: str | None = None
         self._process, self._processes = 0, 1
-        self._paths: list[np.ndarray] = []  # rollouts of the row evaluated last (its map)
+        # The rollouts of the row evaluate_learner or baseline_row gave last, for the
+        # runner's next constraint_map of that row (which empties it).
+        self._paths: list[np.ndarray] = []
         self._greedy: dict[str, SACGreedyConstraintInference] = {}
 
     # ------------------------------------------------------------------ set-up
@@ -508,17 +510,17 @@ class SACTask:
         action modes, fly from the same starts."""
         return np.random.default_rng(derived_seed(self.seed, 3))
 
-    def _evaluate_true_game(self, solver) -> dict:
+    def _evaluate_true_game(self, solver) -> tuple[dict, list]:
         """The row's SR and CVR with mean actions (how an SAC policy is deployed) and
-        sampled ones (the MCE policy itself); ``SR`` and ``CVR`` are ``eval_action``'s."""
+        sampled ones (the MCE policy itself), ``SR`` and ``CVR`` being ``eval_action``'s;
+        and the rollouts of ``eval_action``."""
         row: dict[str, Any] = {"CR_mean": None, "CR_std": None, "RFD": None}
         paths: dict[str, list] = {}
         for mode in EVAL_ACTIONS:
             sr, cvr, paths[mode] = self.evaluate_policy(solver, deterministic=mode == "mean")
             row[f"SR_{mode}"], row[f"CVR_{mode}"] = sr, cvr
         row.update(SR=row[f"SR_{self.eval_action}"], CVR=row[f"CVR_{self.eval_action}"])
-        self._paths = paths[self.eval_action]
-        return row
+        return row, paths[self.eval_action]
 
     def make_planner(self, eta: np.ndarray, cost_weights: np.ndarray, constraints: np.ndarray,
                      seeds: Sequence[int]):
@@ -528,28 +530,41 @@ class SACTask:
         model overrides this."""
         raise NotImplementedError(f"{type(self).__name__} has no model to plan in.")
 
-    def evaluate_planned(self, solver, eta: np.ndarray, cost_weights: np.ndarray,
-                         constraints: np.ndarray, seed: int, progress: str | None = None,
-                         true_game: bool = True) -> dict:
-        """The true-game row of planning on the learned game: ``eval_episodes`` episodes on
-        the evaluation's common starts, each its own planning problem with its own random
-        stream, planned together (``SR_plan``, ``CVR_plan``; SAC's columns None);
-        ``progress`` labels a bar over the finished episodes. ``true_game=False`` flies the
-        nominal game instead (studies of the learned game; not a table row). The paths
-        are left in ``self._paths``."""
+    def planning_actor(self, eta: np.ndarray, cost_weights: np.ndarray,
+                       constraints: np.ndarray, seed: int, n_episodes: int | None = None
+                       ) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+        """An ``actor`` for the solver's ``evaluate`` that plans on the learned game
+        ``(η [l_r + 1], ω_c [l_c])`` with ``constraints [l_c]`` bool forbidden
+        (:meth:`make_planner`): episode ``k`` of ``n_episodes`` (default
+        ``eval_episodes``) is its own planning problem with its own random stream from
+        ``seed``. Fly it in either game, e.g. the nominal one to see where the learned game
+        leads: ``solver.evaluate(n, true_game=False, actor=task.planning_actor(...),
+        rng=task.evaluation_rng(), trajectories=True)``."""
+        n = self.eval_episodes if n_episodes is None else check_int("n_episodes", n_episodes)
         planner = self.make_planner(eta, cost_weights, constraints,
-                                    [derived_seed(seed, 5, k) for k in range(self.eval_episodes)])
+                                    [derived_seed(seed, 5, k) for k in range(n)])
 
         def actor(states: np.ndarray, active: np.ndarray, episodes: np.ndarray) -> np.ndarray:
             return planner.act(states, active, episodes).reshape(len(episodes), -1)
 
-        ev = solver.evaluate(self.eval_episodes, true_game=true_game, trajectories=True,
-                             rng=self.evaluation_rng(), actor=actor, progress=progress)
-        self._paths = list(ev.paths)
-        return {"CR_mean": None, "CR_std": None, "RFD": None, "SR_mean": None,
-                "CVR_mean": None, "SR_sampled": None, "CVR_sampled": None,
-                "SR_plan": ev.success_rate, "CVR_plan": ev.violation_rate,
-                "SR": ev.success_rate, "CVR": ev.violation_rate}
+        return actor
+
+    def evaluate_planned(self, solver, eta: np.ndarray, cost_weights: np.ndarray,
+                         constraints: np.ndarray, seed: int, progress: str | None = None
+                         ) -> tuple[dict, list[np.ndarray]]:
+        """The true-game row of planning on the learned game (:meth:`planning_actor`):
+        ``eval_episodes`` episodes on the evaluation's common starts, planned together
+        (``SR_plan``, ``CVR_plan``; SAC's columns None), and the rollouts' joint states
+        ``[L+1, N, d_s]``; ``progress`` labels a bar over the finished episodes."""
+        ev = solver.evaluate(self.eval_episodes, true_game=True, trajectories=True,
+                             rng=self.evaluation_rng(),
+                             actor=self.planning_actor(eta, cost_weights, constraints, seed),
+                             progress=progress)
+        row = {"CR_mean": None, "CR_std": None, "RFD": None, "SR_mean": None,
+               "CVR_mean": None, "SR_sampled": None, "CVR_sampled": None,
+               "SR_plan": ev.success_rate, "CVR_plan": ev.violation_rate,
+               "SR": ev.success_rate, "CVR": ev.violation_rate}
+        return row, list(ev.paths)
 
     def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True) -> dict:
         """A last solve on the learned ``(η̄, ω_c)``, then the true-game row (with
@@ -558,11 +573,10 @@ class SACTask:
         mask = learned_constraints(cw, self.threshold)
         solver = trainer.learner_model.inner_solver(i)
         if self.eval_policy == "plan":
-            row = self.evaluate_planned(solver, np.asarray(eta, dtype=np.float64),
-                                        np.asarray(cw, dtype=np.float64), mask,
-                                        derived_seed(self.seed, 4, i),
-                                        progress=self._planning_label(trainer, i) if progress
-                                        else None)
+            row, self._paths = self.evaluate_planned(
+                solver, np.asarray(eta, dtype=np.float64), np.asarray(cw, dtype=np.float64),
+                mask, derived_seed(self.seed, 4, i),
+                progress=self._planning_label(trainer, i) if progress else None)
             row.update(self.rates(mask), multiplier=float(eta[-1]),
                        reward_weights=eta[:-1].tolist(), policy_timesteps=None,
                        final_checks=None)
@@ -573,7 +587,7 @@ class SACTask:
             deterministic=self.eval_action == "mean",
             constraints=mask if f["score"] == "learned_success" else None,
             penalty_basis=self.penalty_basis)
-        row = self._evaluate_true_game(solver)
+        row, self._paths = self._evaluate_true_game(solver)
         row.update(self.rates(mask), multiplier=float(eta[-1]),
                    reward_weights=eta[:-1].tolist(), policy_timesteps=kept.timesteps,
                    final_checks=solver.last_checks)
@@ -620,7 +634,7 @@ class SACTask:
 
     def baseline_row(self, name: str, result) -> tuple[dict, list[dict]]:
         mask = result.constraint_mask.numpy()
-        row = self._evaluate_true_game(self._greedy[name].solver)
+        row, self._paths = self._evaluate_true_game(self._greedy[name].solver)
         row.update(self.rates(mask), stop_reason=result.stop_reason)
         history, sel = [], np.zeros_like(mask)
         for k, ll in enumerate(result.log_likelihood):

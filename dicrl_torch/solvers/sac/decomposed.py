@@ -57,13 +57,13 @@ from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
-__all__ = ["DecomposedCritic", "DecomposedSAC", "DecomposedSACPolicy", "polyak_",
+__all__ = ["DecomposedCritic", "DecomposedSAC", "DecomposedSACPolicy",
            "squashed_gaussian_sample"]
 
 _SQUASH_EPSILON = 1e-6  # SB3's SquashedDiagGaussianDistribution epsilon
 
 
-def polyak_(params: list[torch.Tensor], targets: list[torch.Tensor], tau: float) -> None:
+def _polyak(params: list[torch.Tensor], targets: list[torch.Tensor], tau: float) -> None:
     """SB3's ``polyak_update`` (``target ← (1 − τ) target + τ param``, the same two
     operations, so the same bits) on all tensors at once."""
     with torch.no_grad():
@@ -214,7 +214,7 @@ class DecomposedSAC(SAC):
             self.actor.optimizer.step()
 
             if step % self.target_update_interval == 0:
-                polyak_(self._critic_params, self._target_params, self.tau)
+                _polyak(self._critic_params, self._target_params, self.tau)
                 polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
             critic_losses.append(critic_loss.detach())
             actor_losses.append(actor_loss.detach())

@@ -1,6 +1,6 @@
 """Study: which learned drone constraints does planning need? (a study, not the pipeline)
 
-    .venv/bin/python experiments/prune_study.py docs/table2_runs/seed0/results.json \\
+    .venv/bin/python experiments/studies/prune_study.py docs/table2_runs/seed0/results.json \\
         --episodes 10 experiment=table2 seed=0
 
 Reads each D-ICRL / C-ICRL learner's learned game (η̄ = reward_weights + multiplier, ω_c =
@@ -15,15 +15,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import drone_task
 from hydra import compose, initialize_config_dir
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+EXPERIMENTS = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(EXPERIMENTS))  # the entry points' common.py (studies/__init__.py)
+from common import drone_task  # noqa: E402
+
+CONFIGS = EXPERIMENTS.parent / "configs"
 
 
 def learned_games(results: dict):
@@ -61,17 +65,19 @@ def main(argv: list[str] | None = None) -> None:
             allowed[j] = False
             without = cw.copy()
             without[j] = 0.0  # neither forbidden nor penalised
-            # The evaluation's common starts and planner streams, the same for every feature.
-            row = task.evaluate_planned(task.base, eta, without, allowed, seed=0,
-                                        true_game=False)
+            # The evaluation's common starts and planner streams, the same for every
+            # feature; flown in the nominal arena (the learned game's own world).
+            ev = task.base.evaluate(task.eval_episodes, true_game=False, trajectories=True,
+                                    rng=task.evaluation_rng(),
+                                    actor=task.planning_actor(eta, without, allowed, seed=0))
             entered = 0
-            for path in task._paths:
+            for path in ev.paths:
                 phi = task.cost_basis.compute(torch.as_tensor(np.asarray(path))).numpy()
                 entered += bool((phi[:, j] > 0).any())
             print(json.dumps({"method": method, "learner": i, "feature": names[j],
                               "true": bool(truth[j]), "omega_c": round(float(cw[j]), 3),
                               "episodes_entering": entered, "episodes": args.episodes,
-                              "SR_nominal": row["SR"],
+                              "SR_nominal": ev.success_rate,
                               "s": round(time.perf_counter() - t0, 1)}), flush=True)
 
 

@@ -1,8 +1,8 @@
 """Measure planning learners' cost: ``solver.eval_policy=plan`` on the true game.
 
-    .venv/bin/python experiments/measure_planner.py                      # table2, 40 episodes
-    .venv/bin/python experiments/measure_planner.py --episodes 16 experiment=table2_quick
-    .venv/bin/python experiments/measure_planner.py solver.planner.samples=128 \\
+    .venv/bin/python experiments/studies/measure_planner.py           # table2, 40 episodes
+    .venv/bin/python experiments/studies/measure_planner.py --episodes 16 experiment=table2_quick
+    .venv/bin/python experiments/studies/measure_planner.py solver.planner.samples=128 \\
         solver.planner.iterations=3
 
 Builds the configured drone task (Hydra overrides as for ``train.py``; default
@@ -19,14 +19,18 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from common import drone_task
 from hydra import compose, initialize_config_dir
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+EXPERIMENTS = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(EXPERIMENTS))  # the entry points' common.py (studies/__init__.py)
+from common import drone_task  # noqa: E402
+
+CONFIGS = EXPERIMENTS.parent / "configs"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -46,12 +50,13 @@ def main(argv: list[str] | None = None) -> None:
     task = drone_task(cfg)
     truth = task.cost_basis.true_constraints().numpy()
     eta = np.array([1.0] * task.reward_basis.dim + [-10.0])
-    seconds, row = [], None
+    seconds, row, paths = [], None, []
     for _ in range(args.repeat):
         t0 = time.perf_counter()
-        row = task.evaluate_planned(task.base, eta, truth.astype(np.float64), truth, seed=0)
+        row, paths = task.evaluate_planned(task.base, eta, truth.astype(np.float64), truth,
+                                           seed=0)
         seconds.append(time.perf_counter() - t0)
-    steps = sum(len(p) - 1 for p in task._paths)
+    steps = sum(len(p) - 1 for p in paths)
     median = statistics.median(seconds)
     print(json.dumps({
         "experiment": cfg.name, "episodes": args.episodes, "planner": task.planner_settings,
@@ -59,7 +64,7 @@ def main(argv: list[str] | None = None) -> None:
         "SR": row["SR"], "CVR": row["CVR"], "median_s": round(median, 1),
         "all_s": [round(s, 1) for s in seconds], "env_steps": steps,
         "env_steps_per_s": round(steps / median, 2),
-        "checksum": float(sum(p.sum() for p in task._paths))}), flush=True)
+        "checksum": float(sum(p.sum() for p in paths))}), flush=True)
 
 
 if __name__ == "__main__":

@@ -1,13 +1,15 @@
 """Time one SAC gradient update of the drone solver's shapes, three ways (docs/drones.md,
 "Where a SAC update's time goes").
 
-    .venv/bin/python experiments/measure_update.py                       # separate, ensemble
-    .venv/bin/python experiments/measure_update.py --kinds separate ensemble compile separate
+    .venv/bin/python experiments/studies/measure_update.py           # separate, ensemble
+    .venv/bin/python experiments/studies/measure_update.py \\
+        --kinds separate ensemble compile separate
 
 The update is ``DecomposedSAC.train``'s arithmetic as a plain loop, without SB3 or a replay
 buffer: batch 256, a 64x64 squashed-Gaussian actor, two 64x64 critics of ``--columns`` soft-Q
-columns (one per drone), fused Adam, Polyak targets, ``--threads`` torch threads (1). The
-kinds:
+columns (one per drone), fused Adam, Polyak targets (on all tensors at once, as
+``DecomposedSAC.train`` does; the same bits as SB3's ``polyak_update``), ``--threads`` torch
+threads (1). The kinds:
 
 - ``separate``: the two critics as two ``nn.Sequential`` (as shipped);
 - ``ensemble``: the two critics as one network whose layers are ``baddbmm`` over a leading
@@ -31,9 +33,17 @@ import time
 import torch
 from torch import nn
 
-from dicrl_torch.solvers.sac.decomposed import polyak_, squashed_gaussian_sample
+from dicrl_torch.solvers.sac.decomposed import squashed_gaussian_sample
 
 BATCH, OBS, ACT, HIDDEN = 256, 8, 4, 64
+
+
+def polyak(params: list[torch.Tensor], targets: list[torch.Tensor], tau: float) -> None:
+    """``target ← (1 − τ) target + τ param`` on all tensors at once: SB3's ``polyak_update``
+    (the same two operations, so the same bits) in two kernels, as ``DecomposedSAC`` does."""
+    with torch.no_grad():
+        torch._foreach_mul_(targets, 1.0 - tau)
+        torch._foreach_add_(targets, params, alpha=tau)
 
 
 def _mlp(n_in: int, n_out: int) -> nn.Sequential:
@@ -126,7 +136,7 @@ def make_update(kind: str, columns: int, alpha: float = 0.1, gamma: float = 0.99
         actor_opt.zero_grad()
         loss.backward(inputs=actor_params)
         actor_opt.step()
-        polyak_(params, targets, tau)
+        polyak(params, targets, tau)
 
     update.actor, update.critic = actor, critic  # for a test that an update trains them
     return update

@@ -1,10 +1,10 @@
 """Measure ME-greedy and MCE-greedy on the grid world (paper §6.1 baselines).
 
-    .venv/bin/python experiments/measure_greedy.py                     # 1 expert, p = 1.0 and 0.8
-    .venv/bin/python experiments/measure_greedy.py --expert-temperature 1.0   # soft experts
-    .venv/bin/python experiments/measure_greedy.py --experts 2 --one-step     # time one step
-    .venv/bin/python experiments/measure_greedy.py --cost regions --expert-temperature 1.0
-                                          # Scobee's own setting: wall colours, soft experts
+    .venv/bin/python experiments/studies/measure_greedy.py        # 1 expert, p = 1.0 and 0.8
+    .venv/bin/python experiments/studies/measure_greedy.py --expert-temperature 1.0  # soft
+    .venv/bin/python experiments/studies/measure_greedy.py --experts 2 --one-step  # one step
+    .venv/bin/python experiments/studies/measure_greedy.py --cost regions --expert-temperature 1.0
+                                   # Scobee's own setting: wall colours, soft experts
 
 For each dynamics (deterministic, 20% slip) and each model (ME, MCE): 100 demonstrations
 of the optimal experts (``expert_solution``, seed ``--seed``), the greedy with the true

@@ -2,12 +2,14 @@
 
     # Pruning by re-solve: free each learned feature (ω_c >= 0.5) in turn and count how
     # often the re-solved policy visits it (20 rollouts after 1,000 and 2,000 steps).
-    .venv/bin/python experiments/resolve_study.py prune RUN_DIR [--methods D-ICRL,C-ICRL]
+    .venv/bin/python experiments/studies/resolve_study.py prune RUN_DIR [--methods D-ICRL,C-ICRL]
     # The last solve of one learner again, with solver settings changed for it only.
-    .venv/bin/python experiments/resolve_study.py last-solve RUN_DIR D-ICRL 0 demo_value_bound=true
-    .venv/bin/python experiments/resolve_study.py last-solve RUN_DIR C-ICRL 0 final_margin=0.2
-    .venv/bin/python experiments/resolve_study.py last-solve RUN_DIR D-ICRL 0 eval_policy=plan \
-        planner.samples=128 planner.iterations=3
+    .venv/bin/python experiments/studies/resolve_study.py last-solve RUN_DIR D-ICRL 0 \\
+        demo_value_bound=true
+    .venv/bin/python experiments/studies/resolve_study.py last-solve RUN_DIR C-ICRL 0 \\
+        final_margin=0.2
+    .venv/bin/python experiments/studies/resolve_study.py last-solve RUN_DIR D-ICRL 0 \\
+        eval_policy=plan planner.samples=128 planner.iterations=3
 
 RUN_DIR is a Hydra run directory of ``experiments/train.py`` (its ``.hydra/config.yaml`` and
 ``checkpoint.pt``). The trainers are rebuilt from the config and loaded from the end of
@@ -25,23 +27,36 @@ import time
 from pathlib import Path
 
 import torch
-from common import build_task, trainer_spec
 from omegaconf import OmegaConf
 
 from dicrl_torch.comm import SimulatedCommunicator
 from dicrl_torch.runs.checkpoints import Checkpoints
 from dicrl_torch.runs.runner import make_trainer
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # experiments/: common.py
+from common import build_task, trainer_spec  # noqa: E402
+
 SETTINGS = {"demo_bc": float, "demo_value_bound": lambda v: {"true": True, "false": False}[v],
             "final_margin": float, "eval_policy": str, "planner.samples": int,
             "planner.iterations": int, "planner.elites": int, "eval_episodes": int}
+SOLVER_SETTINGS = ("demo_bc", "demo_value_bound")
+"""Settings of the learner's trained solver (the rest are the task's: config keys)."""
+TASK_KEYS = {"final_margin": "solver.final_margin", "eval_policy": "solver.eval_policy",
+             "eval_episodes": "eval_episodes"}  # planner.X: solver.planner.X
 
 
-def load(run: Path, method: str):
-    """``(task, trainer)`` of ``method`` (``D-ICRL`` or ``C-ICRL``) at the end of training."""
+def load(run: Path, method: str, task_settings: dict | None = None):
+    """``(task, trainer)`` of ``method`` (``D-ICRL`` or ``C-ICRL``) at the end of training,
+    the task built from the run's config with ``task_settings`` (SETTINGS' keys) changed."""
     cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
+    if "warmup_timesteps" in cfg.solver:  # a SAC run's
+        # The checkpoint holds the trained solvers: no warm-up to train (or to load).
+        cfg.solver.warmup_timesteps = 0
+    for key, value in (task_settings or {}).items():
+        if key.startswith("planner.") and cfg.solver.get("planner") is None:
+            cfg.solver.planner = {}
+        OmegaConf.update(cfg, TASK_KEYS.get(key, f"solver.{key}"), value)
     task = build_task(cfg)
-    task._warm = True  # the checkpoint holds the trained solvers: skip the warm-up
     spec = trainer_spec(cfg)
     with contextlib.redirect_stdout(sys.stderr):  # its "resuming from" line: not a result
         states = Checkpoints(run / "checkpoint.pt", resume=True).states(method)
@@ -83,19 +98,12 @@ def prune(run: Path, methods: list[str], threshold: float = 0.5) -> None:
 
 
 def last_solve(run: Path, method: str, learner: int, settings: dict) -> None:
-    task, trainer = load(run, method)
+    # eval_policy=plan: no last solve, planning on the learned game.
+    task, trainer = load(run, method, {k: v for k, v in settings.items()
+                                       if k not in SOLVER_SETTINGS})
     solver = trainer.learner_model.inner_solver(learner)
     for key, value in settings.items():
-        if key == "final_margin":
-            task.final["margin"] = value
-            task.penalty_basis = task.cost_basis.dilated(value) if value else None
-        elif key == "eval_policy":  # "plan": no last solve, planning on the learned game
-            task.eval_policy = value
-        elif key.startswith("planner."):
-            task.planner_settings = {**task.planner_settings, key.split(".", 1)[1]: value}
-        elif key == "eval_episodes":
-            task.eval_episodes = value
-        else:  # the solver's and its SB3 model's copy
+        if key in SOLVER_SETTINGS:  # the solver's and its SB3 model's copy
             setattr(solver, key, value)
             setattr(solver.model, key, value)
     # A checkpoint saved before the buffer kept the demonstrations' states: give them again

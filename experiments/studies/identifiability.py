@@ -1,11 +1,11 @@
 """Are the grid world's constraints identifiable from the experts' demonstrations?
 
-    .venv/bin/python experiments/identifiability.py                 # 2 experts (quick)
-    .venv/bin/python experiments/identifiability.py --experts 1
-    .venv/bin/python experiments/identifiability.py --all           # every feature of U
-    .venv/bin/python experiments/identifiability.py --experts 3 --time-one
-    .venv/bin/python experiments/identifiability.py --basis regions --no-likelihood
-    .venv/bin/python experiments/identifiability.py --varied --no-likelihood   # varied starts
+    .venv/bin/python experiments/studies/identifiability.py              # 2 experts (quick)
+    .venv/bin/python experiments/studies/identifiability.py --experts 1
+    .venv/bin/python experiments/studies/identifiability.py --all        # every feature of U
+    .venv/bin/python experiments/studies/identifiability.py --experts 3 --time-one
+    .venv/bin/python experiments/studies/identifiability.py --basis regions --no-likelihood
+    .venv/bin/python experiments/studies/identifiability.py --varied --no-likelihood  # varied
 
 **Classes** (docs/design.md §6, :mod:`dicrl_torch.algos.identifiability`). The true
 constraints of the cost basis (``--all``: every feature) are classified as

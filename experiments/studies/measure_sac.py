@@ -1,8 +1,8 @@
 """Measure the SAC-style constrained solver's throughput (env steps and gradient updates).
 
-    .venv/bin/python experiments/measure_sac.py                    # n_envs 1 and 4, 3 repeats
-    .venv/bin/python experiments/measure_sac.py --n-envs 4 --gradient-steps 1 4
-    .venv/bin/python experiments/measure_sac.py --steps 4000 --device cuda
+    .venv/bin/python experiments/studies/measure_sac.py         # n_envs 1 and 4, 3 repeats
+    .venv/bin/python experiments/studies/measure_sac.py --n-envs 4 --gradient-steps 1 4
+    .venv/bin/python experiments/studies/measure_sac.py --steps 4000 --device cuda
 
 For each ``n_envs`` and ``--gradient-steps`` (per vectorised env step; ``n_envs`` of them
 is one update per env step; the configs use 1): a solver with the default
