@@ -20,11 +20,16 @@ run: install
 demo: install
 	$(PY) experiments/demo_foundation.py
 
+# One worker per core (tests/conftest.py gives each one torch thread); a module's tests
+# that share an expensive fixture run in one worker (xdist_group marks). The slowest tests
+# are listed at the end.
+PYTEST := $(PY) -m pytest -q -n auto --dist loadgroup --durations=15
+
 test: install
-	$(PY) -m pytest -q
+	$(PYTEST)
 
 test-all: install
-	$(PY) -m pytest -q -m ""
+	$(PYTEST) -m ""
 
 lint: install
 	$(VENV)/bin/ruff check .

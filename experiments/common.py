@@ -1,18 +1,25 @@
 """What the entry points build from a Hydra config: the task of the configured
 environment, the run's settings, the trainer's settings and the logger. The only code,
 with ``config_checks``, that reads a config; everything is handed to the library
-(:mod:`dicrl_torch.runs`) as built objects (docs/design.md §2)."""
+(:mod:`dicrl_torch.runs`) as built objects (docs/design.md §2).
+
+Each environment's config group names its task builder, ``env.task._target_``: a function
+``builder(cfg, rank=None)`` returning the run's task (``grid_task``, ``drone_task`` and
+``mpe_task`` below for the shipped games). A game of your own registers itself the same
+way, from its own config group and module, without a change here."""
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import shlex
+import sys
 from pathlib import Path
 from typing import Any
 
 import torch
-from config_checks import is_drone_run, is_mpe_run, shard_files_read_by, torchrun_rank
-from hydra.utils import instantiate
+from config_checks import is_simulated, shard_files_read_by, torchrun_rank
+from hydra.utils import get_method, instantiate
 from omegaconf import OmegaConf
 
 from dicrl_torch.runs.checkpoints import training_config
@@ -89,7 +96,7 @@ def check_shard_contents(cfg) -> None:
     run fails at start-up with the library's message, not minutes later."""
     from dicrl_torch.runs.grid import load_shard_files
 
-    if is_drone_run(cfg) or cfg.get("shard_files") is None:
+    if cfg.get("shard_files") is None or task_builder(cfg) is not grid_task:
         return
     model = build(cfg.env.model, layout=instantiate(cfg.env.layout))
     load_shard_files(list(cfg.shard_files), list(cfg.split), model,
@@ -136,7 +143,7 @@ def sac_task_settings(cfg) -> dict:
         baseline_max_constraints=b.max_constraints)
 
 
-def drone_task(cfg):
+def drone_task(cfg, rank: int | None = None):
     """The drone arena's task (imports stable-baselines3: only for the arena)."""
     from dicrl_torch.runs.drones import DroneTask, derived_seed
 
@@ -148,8 +155,8 @@ def drone_task(cfg):
                      dynamics=drone_dynamics(cfg), **sac_task_settings(cfg))
 
 
-def mpe_task(cfg):
-    """The constrained MPE spread's task (``env=mpe_spread``; issue 27)."""
+def mpe_task(cfg, rank: int | None = None):
+    """The constrained MPE spread's task (``env=mpe_spread``)."""
     from dicrl_torch.runs.mpe import build_mpe_task
 
     # ViaPointController's keyword arguments; the node's _target_ only lets config_checks
@@ -164,11 +171,20 @@ def mpe_task(cfg):
         solver=instantiate(cfg.solver.solver, _partial_=True), **sac_task_settings(cfg))
 
 
+def task_builder(cfg):
+    """The function ``env.task._target_`` names: ``builder(cfg, rank=None) -> task``."""
+    target = OmegaConf.select(cfg, "env.task._target_", default=None)
+    if not isinstance(target, str):
+        raise ValueError("env.task._target_ is missing: an environment's config group names "
+                         "its task builder, e.g. env.task._target_=common.grid_task (a "
+                         "function builder(cfg, rank=None) returning the task).")
+    return get_method(target)
+
+
 def build_task(cfg, rank: int | None = None):
-    """The configured environment's task."""
-    if is_mpe_run(cfg):
-        return mpe_task(cfg)
-    return drone_task(cfg) if is_drone_run(cfg) else grid_task(cfg, rank)
+    """The configured environment's task, as process ``rank`` sees it (None: the process
+    that holds every shard)."""
+    return task_builder(cfg)(cfg, rank)
 
 
 def run_settings(cfg) -> RunSettings:
@@ -201,3 +217,50 @@ def trainer_spec(cfg) -> TrainerSpec:
 def make_logger(cfg, out: Path):
     return instantiate(cfg.logger, **({"root": out / "tb"} if "TensorBoard" in
                                       cfg.logger._target_ else {}))
+
+
+class ConfigExperiment:
+    """A run as :func:`dicrl_torch.runs.launch.launch` sees it, built from ``cfg``; it
+    pickles as the resolved config, so a spawned learner process rebuilds the same pieces.
+
+    Args:
+        cfg: the composed ``train`` config.
+        overrides: the command line's overrides (for the resume command).
+    """
+
+    def __init__(self, cfg, overrides: tuple[str, ...] = ()) -> None:
+        self.cfg, self.overrides = cfg, tuple(overrides)
+        self.config_text = OmegaConf.to_yaml(cfg, resolve=True)
+        self.n_learners = len(cfg.split)
+        self.distributed = not is_simulated(cfg)
+        self.c_icrl_beside_learners = bool(cfg.algo.run_c_icrl
+                                           and cfg.algo.c_icrl_beside_learners)
+
+    def __reduce__(self):
+        return _experiment_from_yaml, (self.config_text, self.overrides)
+
+    def task(self, rank: int | None = None):
+        return build_task(self.cfg, rank)
+
+    def settings(self) -> RunSettings:
+        return run_settings(self.cfg)
+
+    def trainer(self) -> TrainerSpec:
+        return trainer_spec(self.cfg)
+
+    def logger(self, out: Path):
+        return make_logger(self.cfg, out)
+
+    def communicator(self, **objects):
+        return build(self.cfg.comm, **objects)
+
+    def resume_command(self, out: Path) -> str:
+        keep = [o for o in self.overrides if not o.startswith(("resume=", "hydra.run.dir="))]
+        script = (sys.argv[0] if sys.argv[0].endswith("train.py")
+                  else str(Path(__file__).with_name("train.py")))
+        return shlex.join([sys.executable, script, *keep, "resume=true",
+                           f"hydra.run.dir={out}"])
+
+
+def _experiment_from_yaml(config_text: str, overrides: tuple[str, ...]) -> ConfigExperiment:
+    return ConfigExperiment(OmegaConf.create(config_text), overrides)

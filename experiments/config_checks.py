@@ -155,7 +155,7 @@ KNOWN_KEYS = {
     "": {"env", "features", "solver", "algo", "graph", "comm", "logger", "name", "seed",
          "n_demonstrations", "split", "eval_episodes", "eval_every", "expert_temperature",
          "checkpoint_every", "resume", "baselines", "shard_files"},
-    "env": {"layout", "model", "true_reward_weights", "arena", "expert"},
+    # "env" is the game's own (its nodes with a _target_ are checked against signatures)
     # the drones' solver node (the grid's has a _target_, checked against its signature)
     "solver": {"timesteps", "warmup_timesteps", "warmup_restarts", "warmup_checks",
                "final_timesteps", "final_checks",

@@ -11,9 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import subprocess
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -174,12 +171,7 @@ def _check_value(where: str, value) -> None:
 @pytest.mark.parametrize("run", RUNS, ids=[r.name for r in RUNS])
 def test_every_option_runs_end_to_end(run: Run, tmp_path):
     overrides = [f"{g}={o}" for g, o in run.options.items()]
-    out = subprocess.run(
-        [sys.executable, str(tiny_train.TRAIN), f"hydra.run.dir={tmp_path}", *overrides,
-         *run.tiny, *run.extra], capture_output=True, text=True, cwd=ROOT, timeout=300,
-        # one thread: the tiny SAC networks gain nothing from more, and on a shared,
-        # loaded machine torch's threads contend (the arena's runs take 5x longer)
-        env={**os.environ, "DICRL_THREADS": "1"})
+    out = tiny_train.train_cli(tmp_path, *overrides, *run.tiny, *run.extra)
     assert out.returncode == 0, out.stderr[-3000:]
     res = json.loads((tmp_path / "results.json").read_text())
     methods = res["methods"]

@@ -13,7 +13,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
-from tiny_train import TINY, TRAIN, comparable, run_train
+from tiny_train import TINY, TRAIN, comparable, run_train, train_here
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -149,17 +149,17 @@ def checkpointed_seconds(run_dir) -> list[float]:
     return [h["seconds"] for h in saved["D-ICRL"]["history"]]
 
 
-def test_kill_9_then_resume_reproduces_the_uninterrupted_run(tmp_path):
-    full = run_train(tmp_path / "full")
-    assert full.returncode == 0, full.stderr[-2000:]
-    crashed = run_train(tmp_path / "crash", env={"DICRL_CRASH_AFTER": "D-ICRL:2"})
+def test_kill_9_then_resume_reproduces_the_uninterrupted_run(tmp_path, tiny_reference):
+    # a real process and a real SIGKILL (the other crash tests play it in-process)
+    crashed = run_train(tmp_path / "crash", env={"DICRL_CRASH_AFTER": "D-ICRL:2"},
+                        subprocess=True)
     assert crashed.returncode == -9  # killed mid-run, after outer iteration 2
     assert not (tmp_path / "crash" / "results.json").exists()
     before_kill = checkpointed_seconds(tmp_path / "crash")
     resumed = run_train(tmp_path / "crash", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert "resuming from" in resumed.stdout
-    assert comparable(tmp_path / "crash") == comparable(tmp_path / "full")
+    assert comparable(tmp_path / "crash") == comparable(tiny_reference)
     # The training time counts the iterations run before the kill, as that process timed
     # them, besides the resumed process's own.
     seconds = checkpointed_seconds(tmp_path / "crash")
@@ -173,17 +173,14 @@ def test_resume_elsewhere_restores_the_tensorboard_curves(tmp_path):
     """A checkpoint carried to a new run directory (another checkout or machine) arrives
     without its event files. The resumed run writes the checkpointed iterations' outer/
     and eval/ values, so its curves equal the uninterrupted run's."""
-    import os
-
     import numpy as np
     from tb_snapshot import read_scalars
 
+    logged = [o for o in TINY if not o.startswith("logger=")]
+
     def run_logged(run_dir, *extra, env=None):
-        return subprocess.run(
-            [sys.executable, str(TRAIN),
-             f"hydra.run.dir={run_dir}", *[o for o in TINY if not o.startswith("logger=")],
-             *extra], capture_output=True, text=True, cwd=ROOT, timeout=600,
-            env={**os.environ, **(env or {})})
+        return train_here(run_dir, *logged, *extra,
+                          crash_after=(env or {}).get("DICRL_CRASH_AFTER"))
 
     full = run_logged(tmp_path / "full")
     assert full.returncode == 0, full.stderr[-2000:]
@@ -203,13 +200,13 @@ def test_resume_elsewhere_restores_the_tensorboard_curves(tmp_path):
         assert np.array_equal(got_values, want_values), (tag, run)
 
 
-def test_same_seed_same_results(tmp_path):
-    a, b = run_train(tmp_path / "a"), run_train(tmp_path / "b")
-    assert a.returncode == 0 and b.returncode == 0
-    assert comparable(tmp_path / "a") == comparable(tmp_path / "b")
+def test_same_seed_same_results(tmp_path, tiny_reference):
+    a = run_train(tmp_path / "a")
+    assert a.returncode == 0, a.stderr[-2000:]
+    assert comparable(tmp_path / "a") == comparable(tiny_reference)
 
 
-def test_own_shard_files_reproduce_the_sampled_run(tmp_path):
+def test_own_shard_files_reproduce_the_sampled_run(tmp_path, tiny_reference):
     """A run on ``shard_files`` holding exactly the demonstrations a sampled run drew, split
     the same way, computes the same results.json (the config aside)."""
     from dicrl_torch.demos import (
@@ -218,14 +215,12 @@ def test_own_shard_files_reproduce_the_sampled_run(tmp_path):
         save_demonstrations,
     )
 
-    sampled = run_train(tmp_path / "sampled")
-    assert sampled.returncode == 0, sampled.stderr[-2000:]
-    demos = load_demonstrations(tmp_path / "sampled" / "demos.npz")
+    demos = load_demonstrations(tiny_reference / "demos.npz")
     files = [save_demonstrations(tmp_path / f"learner{v}.npz", shard)
              for v, shard in enumerate(partition_demonstrations(demos, [4, 6]))]
     own = run_train(tmp_path / "own", f"shard_files=[{files[0]},{files[1]}]")
     assert own.returncode == 0, own.stderr[-2000:]
-    a, b = comparable(tmp_path / "sampled"), comparable(tmp_path / "own")
+    a, b = comparable(tiny_reference), comparable(tmp_path / "own")
     assert b["config"].pop("shard_files") == [str(f) for f in files]
     a["config"].pop("shard_files")
     assert a == b
@@ -321,9 +316,7 @@ def test_every_basis_says_which_environment_it_serves():
 
 
 def test_the_cli_refuses_a_misfit_before_any_computation(tmp_path):
-    out = subprocess.run(
-        [sys.executable, str(TRAIN), f"hydra.run.dir={tmp_path}", "experiment=quick",
-         "features/reward=fourier"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    out = train_here(tmp_path, "experiment=quick", "features/reward=fourier")
     assert out.returncode == 2, out.stderr[-3000:]
     assert ("features/reward=fourier is a basis of the continuous games (the drone arena, the MPE "
             "spread); with env=gridworld use "

@@ -24,7 +24,7 @@ import pytest
 import tiny_dicrl
 import torch
 from hydra.errors import ConfigCompositionException
-from tiny_train import TINY, TRAIN, comparable, compose_train, finished_run, run_train
+from tiny_train import TINY, TRAIN, comparable, compose_train, run_train
 
 from dicrl_torch.algos.dicrl import NonFiniteError, StepSizes
 from dicrl_torch.algos.icrl import model_reward
@@ -54,9 +54,9 @@ def leftovers(run_dir: Path) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> Path:
+def reference(tiny_reference) -> Path:
     """The uninterrupted TINY run that every interrupted-and-resumed run must reproduce."""
-    return finished_run(tmp_path_factory, "reference")
+    return tiny_reference
 
 
 # ---------------------------------------------------------------------- configuration
@@ -383,7 +383,8 @@ def test_greedy_baseline_stopped_mid_search_resumes_where_it_was(tmp_path, refer
     assert training_s[name] >= after["seconds"] > before["seconds"] > 0
 
 
-def test_greedy_baselines_in_a_job_of_their_own_merge_into_the_run(tmp_path, reference_greedy):
+def test_greedy_baselines_in_a_job_of_their_own_merge_into_the_run(tmp_path, reference_greedy,
+                                                                   capsys):
     run, own = tmp_path / "run", tmp_path / "own"
     crashed = run_train(run, "baselines=greedy", env={"DICRL_CRASH_AFTER": "C-ICRL:3"})
     assert crashed.returncode == -9
@@ -391,12 +392,10 @@ def test_greedy_baselines_in_a_job_of_their_own_merge_into_the_run(tmp_path, ref
     assert alone.returncode == 0, alone.stderr[-3000:]
     assert list(comparable(own)["methods"]) == [
         "ME-greedy", "MCE-greedy", "Experts (ground truth)", "Experts (nominal)"]
-    merged = subprocess.run(
-        [sys.executable, "-m", "dicrl_torch.runs.checkpoints", "merge",
-         str(own / "checkpoint.pt"), str(run / "checkpoint.pt"), "--method", "ME-greedy",
-         "--method", "MCE-greedy"], capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert merged.returncode == 0, merged.stderr
-    assert "ME-greedy now at 5 candidates evaluated, finished" in merged.stdout
+    # the merge command in this process (its command line runs in the C-ICRL test above)
+    checkpoints.main(["merge", str(own / "checkpoint.pt"), str(run / "checkpoint.pt"),
+                      "--method", "ME-greedy", "--method", "MCE-greedy"])
+    assert "ME-greedy now at 5 candidates evaluated, finished" in capsys.readouterr().out
     resumed = run_train(run, "baselines=greedy", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "ME-greedy:" not in resumed.stderr  # no greedy step ran again: no progress bar

@@ -6,9 +6,7 @@ docs/design.md §8)."""
 
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,7 +15,7 @@ import torch.distributed as dist
 from test_drone_dicrl import TINY
 from test_mpe_task import CONFIG_TINY
 from test_train_distributed import differences
-from tiny_train import comparable, finished_run
+from tiny_train import comparable, finished_run, train_cli
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ROOT / "experiments" / "train.py"
@@ -37,10 +35,8 @@ def run(game: str, run_dir: Path, *extra: str, env: dict | None = None
     # One thread in every process: the SAC networks compute in float32, and a matrix
     # product summed by another number of threads differs in the last bits (measured:
     # the learners' last-solve scores by ~1e-8 with 2 threads against 1 per process).
-    return subprocess.run([sys.executable, str(TRAIN), f"hydra.run.dir={run_dir}",
-                           *GAMES[game], "algo.outer_iterations=2", *extra],
-                          capture_output=True, text=True, cwd=ROOT, timeout=600,
-                          env={**os.environ, "DICRL_THREADS": "1", **(env or {})})
+    # conftest.py sets that for this process and the ones a test starts.
+    return train_cli(run_dir, *GAMES[game], "algo.outer_iterations=2", *extra, env=env)
 
 
 @pytest.fixture(scope="module", params=sorted(GAMES))

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from tiny_train import TINY, TRAIN, compose_train
+from tiny_train import TINY, TRAIN, compose_train, train_cli
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_ORDER = ["D-ICRL", "C-ICRL", "ME-greedy", "MCE-greedy", "Experts (ground truth)",
@@ -47,10 +47,7 @@ def test_bad_baselines_are_refused(override):
 
 
 def test_tiny_run_with_baselines_has_the_paper_rows(tmp_path):
-    out = subprocess.run(
-        [sys.executable, str(TRAIN), f"hydra.run.dir={tmp_path}",
-         *TINY, "baselines=greedy", "logger=tensorboard"],
-        capture_output=True, text=True, cwd=ROOT, timeout=600)
+    out = train_cli(tmp_path, *TINY, "baselines=greedy", "logger=tensorboard")
     assert out.returncode == 0, out.stderr[-3000:]
     res = json.loads((tmp_path / "results.json").read_text())
     assert list(res["methods"]) == PAPER_ORDER

@@ -86,8 +86,11 @@ def assert_unclassified(got: dict, want: dict) -> None:
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory) -> Path:
-    """The reference: every learner in one process (comm=simulated, the default)."""
-    return tiny_train.finished_run(tmp_path_factory, "simulated", run=run_train)
+    """The reference: every learner in one process (comm=simulated, the default), this
+    one (one torch thread, as each learner process has)."""
+    return tiny_train.finished_run(
+        tmp_path_factory, "simulated",
+        run=lambda run_dir, *extra: tiny_train.train_here(run_dir, *TINY, *extra))
 
 
 @pytest.fixture(scope="module")

@@ -7,14 +7,11 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import torch
-from tiny_train import TRAIN, compose_train
+from tiny_train import TRAIN, compose_train, train_cli
 
 from dicrl_torch.algos.models import TabularLearnerModel
 from dicrl_torch.demos import save_demonstrations
@@ -354,13 +351,9 @@ def test_varied_experiments_compose(experiment, n_experts):
 
 
 def run_train(tmp_path, *overrides):
-    out = subprocess.run(
-        [sys.executable, str(TRAIN), f"hydra.run.dir={tmp_path}", "env.model.horizon=8",
-         "solver.compile=false", "algo.outer_iterations=1", "algo.inner_steps=2",
-         "eval_episodes=20", "n_demonstrations=12", "split=[5,7]", "logger=none",
-         *overrides], capture_output=True, text=True, cwd=ROOT, timeout=600,
-        # one thread: on a shared, loaded machine torch's threads contend
-        env={**os.environ, "DICRL_THREADS": "1"})
+    out = train_cli(tmp_path, "env.model.horizon=8", "solver.compile=false",
+                    "algo.outer_iterations=1", "algo.inner_steps=2", "eval_episodes=20",
+                    "n_demonstrations=12", "split=[5,7]", "logger=none", *overrides)
     assert out.returncode == 0, out.stderr[-3000:]
     res = json.loads((tmp_path / "results.json").read_text())
     demos = np.load(tmp_path / "demos.npz")["states"]
