@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from dicrl_torch.checks import setting_number
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel, decode_joint
 
 
@@ -70,13 +71,25 @@ def false_negative_rate(learned, true) -> float | None:
 THRESHOLD_TOLERANCE = 1e-9  # far below any step, far above float64 rounding
 
 
+def check_threshold(threshold) -> float:
+    """The learned-constraint rule's ``threshold`` as a float in ``(0, 1]``: the weights
+    ``ω_c`` live in ``[0, 1]``, so 0 would mark every feature; 1 marks those at the upper
+    bound (``init_cost_weights=1`` starts there, and a weight stays there while each
+    projected step clips to 1), a legitimate if strict rule.
+
+    Raises:
+        InvalidSetting: any other value.
+    """
+    return setting_number("threshold", threshold, low=0, high=1, low_open=True, example=0.5,
+                          why="ω_c,j >= threshold marks a learned constraint")
+
+
 def learned_constraints(cost_weights, threshold: float = 0.5) -> np.ndarray:
     """``ω_c,j >= threshold`` marks feature ``j`` as a learned constraint, up to
     ``THRESHOLD_TOLERANCE``: a clipped first LSCA step puts a weight at exactly
     β(0) = 0.5, and the consensus mix of equal values then rounds it to 0.4999999999999993
     (measured, MPE seed 1), which must not flip the decision."""
-    if not 0.0 < threshold <= 1.0:
-        raise ValueError(f"threshold must lie in (0, 1], got {threshold}.")
+    threshold = check_threshold(threshold)
     w = np.asarray(cost_weights.cpu() if isinstance(cost_weights, torch.Tensor) else cost_weights)
     return w >= threshold - THRESHOLD_TOLERANCE
 

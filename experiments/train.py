@@ -25,8 +25,7 @@ from pathlib import Path
 
 import hydra
 import torch
-from common import ConfigExperiment, check_shard_contents
-from config_checks import check_config
+from common import ConfigExperiment, check_config, check_shard_contents
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 

@@ -280,10 +280,11 @@ def combinations(fit: bool) -> list[tuple[str, str, str]]:
 
 @pytest.mark.parametrize("env,group,option", combinations(fit=False))
 def test_an_option_of_the_other_environment_is_refused(env, group, option):
-    import config_checks  # experiments/ is on pytest's pythonpath
+    import common  # experiments/ is on pytest's pythonpath
+    import config_checks
 
     with pytest.raises(config_checks.ConfigError) as info:
-        config_checks.check_config(compose_for(env, f"{group}={option}"))
+        common.check_config(compose_for(env, f"{group}={option}"))
     text = str(info.value)
     # one problem: the option's own keys are not checked against the wrong class or rules
     assert text.startswith("1 problem(s) in the configuration, nothing was computed:"), text
@@ -300,9 +301,9 @@ def test_an_option_of_the_other_environment_is_refused(env, group, option):
 @pytest.mark.parametrize("env,group,option", combinations(fit=True)
                          + [(env, "baselines", "none") for env in group_options("env")])
 def test_an_option_of_the_environment_passes(env, group, option):
-    import config_checks  # experiments/ is on pytest's pythonpath
+    import common  # experiments/ is on pytest's pythonpath
 
-    config_checks.check_config(compose_for(env, f"{group}={option}"))
+    common.check_config(compose_for(env, f"{group}={option}"))
 
 
 def test_every_basis_says_which_environment_it_serves():

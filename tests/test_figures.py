@@ -228,10 +228,11 @@ def test_cost_weight_curves_refuse_what_they_cannot_draw():
 
 # ---------------------------------------------------------------------- train.py
 def test_eval_every_is_checked():
-    import config_checks  # experiments/ is on pytest's pythonpath
+    import common  # experiments/ is on pytest's pythonpath
+    import config_checks
     with pytest.raises(config_checks.ConfigError, match="eval_every=0 is invalid"):
-        config_checks.check_config(compose_train("eval_every=0"))
-    config_checks.check_config(compose_train("eval_every=1"))
+        common.check_config(compose_train("eval_every=0"))
+    common.check_config(compose_train("eval_every=1"))
 
 
 def test_tiny_run_records_the_curves_and_writes_the_figures(tmp_path):

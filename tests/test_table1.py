@@ -41,9 +41,10 @@ def test_make_run_has_no_baselines():
                                       "baselines.run=[ME-greedy,ME-greedy]",
                                       "baselines.run=ME-greedy", "+baselines.eps=0.1"])
 def test_bad_baselines_are_refused(override):
-    import config_checks  # experiments/ is on pytest's pythonpath
+    import common  # experiments/ is on pytest's pythonpath
+    import config_checks
     with pytest.raises(config_checks.ConfigError, match="baselines"):
-        config_checks.check_config(compose_train(override))
+        common.check_config(compose_train(override))
 
 
 def test_tiny_run_with_baselines_has_the_paper_rows(tmp_path):

@@ -32,17 +32,18 @@ accrue cannot be a constraint, so that learner projects it to 0.
 
 from __future__ import annotations
 
-import math
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 
 from dicrl_torch.algos.callbacks import TrainerCallback
 from dicrl_torch.algos.icrl import dual_gradient, local_gradient
 from dicrl_torch.algos.models import LearnerModel, ModelSolution, TabularLearnerModel
+from dicrl_torch.checks import setting_bool, setting_choice, setting_int, setting_number
 from dicrl_torch.comm.graphs import MixingSchedule, check_inner_schedule, check_outer_schedule
 from dicrl_torch.features.bases import FeatureBasis
 from dicrl_torch.metrics import learned_constraints
@@ -76,23 +77,57 @@ class StepSizes:
     multiplier_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        if not (self.alpha_bar > 0 and math.isfinite(self.alpha_bar)):
-            raise ValueError(f"alpha_bar must be a positive number, got {self.alpha_bar}.")
-        if not (self.multiplier_scale > 0 and math.isfinite(self.multiplier_scale)):
-            raise ValueError(f"multiplier_scale must be a positive number (1: the paper's "
-                             f"step), got {self.multiplier_scale}.")
-        if not 0 < self.beta_bar < 1:
-            raise ValueError(f"beta_bar must lie in (0, 1) so that β(n) ∈ (0, 1) "
-                             f"(Theorem 1), got {self.beta_bar}.")
-        if not 0.5 < self.beta_power <= 1:
-            raise ValueError(f"beta_power must lie in (0.5, 1] so that Σβ = ∞ and Σβ² < ∞ "
-                             f"(Theorem 1), got {self.beta_power}.")
+        setting_number("alpha_bar", self.alpha_bar, low=0, low_open=True, example=0.02,
+                       why="α(k) = ᾱ/(k+1)")
+        setting_number("multiplier_scale", self.multiplier_scale, low=0, low_open=True,
+                       example=1.0, why="the λ coordinate's step is scaled by it; 1: the "
+                                        "paper's")
+        setting_number("beta_bar", self.beta_bar, low=0, high=1, low_open=True,
+                       high_open=True, example=0.5, why="so that β(n) ∈ (0, 1), Theorem 1")
+        setting_number("beta_power", self.beta_power, low=0.5, high=1, low_open=True,
+                       example=0.6, why="so that Σβ = ∞ and Σβ² < ∞, Theorem 1")
 
     def alpha(self, k: int) -> float:
         return self.alpha_bar / (k + 1)
 
     def beta(self, n: int) -> float:
         return self.beta_bar / (n + 1) ** self.beta_power
+
+
+_OPTION_RULES: dict[str, Callable[[Any], Any]] = {
+    "inner_steps": lambda v: setting_int("inner_steps", v, least=2, example=6,
+                                         why="K: Algorithm 2 takes K - 1 steps"),
+    "lsca_curvature": lambda v: setting_number("lsca_curvature", v, low=0, low_open=True,
+                                               example=300.0, why="ρ of the LSCA step"),
+    "prune_accrued": lambda v: setting_bool("prune_accrued", v),
+    "inner_method": lambda v: setting_choice("inner_method", v,
+                                             ("paper", "gradient_tracking")),
+    "inner_step": lambda v: setting_number(
+        "inner_step", v, low=0, low_open=True, example=0.005,
+        why="the constant step of inner_method=gradient_tracking"),
+    "init_cost_weights": lambda v: setting_number("init_cost_weights", v, low=0, high=1,
+                                                  example=0.0, why="ω_c(0) lives in [0, 1]^d"),
+    "init_reward_weights": lambda v: setting_number("init_reward_weights", v, example=0.0),
+    "init_multiplier": lambda v: setting_number("init_multiplier", v, example=-1.0,
+                                                why="λ(0)"),
+}
+# Initial weights may also be arrays (one value per learner and feature): DICRL checks
+# those itself, with their shapes.
+_ARRAY_OPTIONS = ("init_cost_weights", "init_reward_weights")
+
+
+def check_trainer_options(**options: Any) -> None:
+    """Refuse :class:`DICRL`'s scalar options out of range, naming the first (those given;
+    others are ignored). :class:`DICRL` checks its own; a trainer's settings built before
+    any run (:class:`~dicrl_torch.runs.runner.TrainerSpec`) check theirs with it.
+
+    Raises:
+        InvalidSetting: naming the option, what it must be and an example.
+    """
+    for name, rule in _OPTION_RULES.items():
+        if name in options and not (name in _ARRAY_OPTIONS
+                                    and hasattr(options[name], "shape")):
+            rule(options[name])
 
 
 @dataclass
@@ -146,6 +181,11 @@ class DICRL:
             given to :meth:`train` itself.
         init_cost_weights: ``[N_L, d]`` or a scalar; init_reward_weights ``[l_r]`` or
             scalar; init_multiplier λ(0).
+
+    Raises:
+        InvalidSetting: an option out of range (:func:`check_trainer_options`), checked
+            before anything else.
+        ValueError: shards, counts or schedules that do not fit the communicator.
     """
 
     def __init__(self, *, learner_model: LearnerModel | None = None,
@@ -162,6 +202,11 @@ class DICRL:
                  merge_identical_inner: bool = True, inner_method: str = "paper",
                  inner_step: float = 0.01,
                  callbacks: Sequence[TrainerCallback] = ()) -> None:
+        check_trainer_options(
+            inner_steps=inner_steps, lsca_curvature=lsca_curvature,
+            prune_accrued=prune_accrued, inner_method=inner_method, inner_step=inner_step,
+            init_cost_weights=init_cost_weights, init_reward_weights=init_reward_weights,
+            init_multiplier=init_multiplier)
         self.comm = communicator
         N_L = communicator.n_learners
         local = communicator.local_ids
@@ -190,20 +235,11 @@ class DICRL:
         # Assumptions 1-3 are checked before any computation.
         check_inner_schedule(inner_schedule, horizon=max(100, inner_steps))
         check_outer_schedule(outer_schedule)
-        if inner_method not in ("paper", "gradient_tracking"):
-            raise ValueError(f"inner_method must be 'paper' or 'gradient_tracking', got "
-                             f"{inner_method!r}.")
-        if not (inner_step > 0 and math.isfinite(inner_step)):
-            raise ValueError(f"inner_step must be a positive number, got {inner_step}.")
         self.inner_method, self.inner_step = inner_method, float(inner_step)
         self.callbacks = list(callbacks)
         self._active: list[TrainerCallback] = []  # during train(): these and its own
         self._log_rows: list[int] = []  # local learners whose own inner process runs now
         self._process = 0  # the learner whose ω_c the running inner process is for
-        if inner_steps < 2:
-            raise ValueError(f"inner_steps (K) must be >= 2, got {inner_steps}.")
-        if not lsca_curvature > 0:
-            raise ValueError(f"lsca_curvature must be > 0, got {lsca_curvature}.")
         self.shards = list(shards)
         self.m = torch.tensor([float(trajectory_counts[v]) for v in local], dtype=torch.float64)
         self.inner_schedule, self.outer_schedule = inner_schedule, outer_schedule
@@ -231,9 +267,6 @@ class DICRL:
         if not torch.isfinite(rw).all():
             raise ValueError(f"init_reward_weights must be finite, got {init_reward_weights}; "
                              f"give a finite number (0.0 is the default).")
-        if not math.isfinite(float(init_multiplier)):
-            raise ValueError(f"init_multiplier (λ(0)) must be finite, got {init_multiplier}; "
-                             f"give a finite number (-1.0 is the default).")
         eta0 = torch.cat([rw, torch.tensor([float(init_multiplier)], dtype=torch.float64)])
         n = len(local)
         self.state = LearnerState(

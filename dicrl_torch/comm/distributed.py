@@ -37,6 +37,7 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
+from dicrl_torch.checks import InvalidSetting, setting_choice, setting_number
 from dicrl_torch.comm.communicator import (
     ALLOWED_FIELDS,
     MessageRecord,
@@ -94,18 +95,31 @@ class DistributedCommunicator:
     in the same order with the same shapes, as the trainer does.
     """
 
+    @staticmethod
+    def check_settings(**settings: Any) -> None:
+        """Refuse the settings given (``backend``, ``timeout_s``; others are ignored) as
+        the constructor does: a config checks them before any process starts.
+
+        Raises:
+            InvalidSetting: naming the setting, what it must be and an example.
+        """
+        if "backend" in settings:
+            backend = setting_choice("backend", settings["backend"], ("gloo", "nccl"),
+                                     why="gloo: CPU; nccl: CUDA, one GPU per learner process")
+            if backend == "nccl" and not torch.cuda.is_available():
+                raise InvalidSetting("backend", backend, "'gloo' here ('nccl' needs CUDA, "
+                                     "which this machine lacks)", "gloo")
+        if "timeout_s" in settings:
+            setting_number("timeout_s", settings["timeout_s"], low=0, low_open=True,
+                           example=60, why="seconds a learner waits for the others")
+
     def __init__(self, *, backend: str = "gloo", timeout_s: float = 60.0,
                  init_method: str | None = None, rank: int | None = None,
                  world_size: int | None = None, record: bool = False) -> None:
         if not dist.is_available():
             raise RuntimeError("torch.distributed is not available in this torch build; use "
                                "SimulatedCommunicator instead.")
-        if backend not in ("gloo", "nccl"):
-            raise ValueError(f"backend must be 'gloo' or 'nccl', got {backend!r}.")
-        if backend == "nccl" and not torch.cuda.is_available():
-            raise ValueError("backend='nccl' needs CUDA, which is not available; use 'gloo'.")
-        if not timeout_s > 0:
-            raise ValueError(f"timeout_s must be > 0, got {timeout_s}.")
+        self.check_settings(backend=backend, timeout_s=timeout_s)
         self.timeout_s, self.record = float(timeout_s), record
         self.messages: list[MessageRecord] = []
         self._owns_group = False

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from dicrl_torch.checks import InvalidSetting, is_int, setting_int, setting_number
+
 # (name, dx, dy); "N" is up, i.e. towards y = 0.
 ACTIONS: tuple[tuple[str, int, int], ...] = (
     ("stay", 0, 0),
@@ -93,8 +95,7 @@ class GridLayout:
     name: str = field(default="custom", compare=False)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.size, int) or self.size < 2:
-            raise ValueError(f"GridLayout.size must be an int >= 2, got {self.size!r}.")
+        setting_int("size", self.size, least=2, example=9, why="the grid's side")
         if len(self.starts) != len(self.goals) or not 1 <= len(self.starts) <= 3:
             raise ValueError(
                 f"GridLayout needs 1 to 3 experts with one start and one goal each; got "
@@ -359,8 +360,9 @@ def check_regions(regions, size: int) -> dict[str, tuple[tuple[int, int], ...]]:
 
 
 def _check_n_experts(n: int) -> None:
-    if n not in (1, 2, 3):
-        raise ValueError(f"n_experts must be 1, 2 or 3, got {n!r}.")
+    if not is_int(n) or n not in (1, 2, 3):
+        raise InvalidSetting("n_experts", n, "1, 2 or 3 (the experts of the layout's table, "
+                             "taken in order)", 2)
 
 
 # A dense transition tensor has S * A * S entries; beyond this it is refused.
@@ -387,16 +389,15 @@ class TabularGridModel:
         self, *, layout: GridLayout, horizon: int = 40, gamma: float = 0.99,
         p_success: float = 0.8,
     ) -> None:
-        if not isinstance(horizon, int) or horizon < 1:
-            raise ValueError(f"horizon must be a positive int, got {horizon!r}.")
-        if not (0.0 < gamma <= 1.0):
-            raise ValueError(f"gamma must lie in (0, 1], got {gamma!r}.")
-        if not (0.0 < p_success <= 1.0):
-            raise ValueError(f"p_success must lie in (0, 1], got {p_success!r}.")
+        self.horizon = setting_int("horizon", horizon, example=40,
+                                   why="the horizon T, decisions per episode")
+        # γ = 1 is well defined over a finite horizon.
+        self.gamma = setting_number("gamma", gamma, low=0, high=1, low_open=True,
+                                    example=0.99, why="the discount γ")
+        self.p_success = setting_number("p_success", p_success, low=0, high=1,
+                                        low_open=True, example=0.8,
+                                        why="the probability that a move succeeds")
         self.layout = layout
-        self.horizon = horizon
-        self.gamma = float(gamma)
-        self.p_success = float(p_success)
         self.n_experts = layout.n_experts
         self.n_cells = layout.n_cells
         self.n_actions = N_ACTIONS

@@ -41,6 +41,16 @@ class Basis(Protocol):
     A cost basis with a ground truth also has ``true_constraints()``
     (:class:`ConstraintBasis`); a learned one (``FrozenModuleBasis``) has none, and FPR
     and FNR do not apply to it.
+
+    The optional abilities of a continuous basis are declared, with their generic
+    versions, on its base class
+    :class:`~dicrl_torch.features.continuous.ContinuousFeatureBasis` (callers call them,
+    never probe for them): ``agent_shares(N)`` ``[l, N]`` (which agent owns each
+    feature), ``numpy_features(states)`` ``[..., l]`` and ``dot(states, weights)``
+    ``[...]`` (the planner's fast numpy paths; generic: through ``compute``),
+    ``dilatable`` and ``dilated(margin)`` (features grown by a margin; generic: none) and
+    ``cell_rectangles()`` ``[C, 4]`` (the cells of the first ``C`` features, for maps;
+    generic: ``[0, 4]``).
     """
 
     names: Sequence[str]

@@ -120,6 +120,36 @@ class ContinuousFeatureBasis(nn.Module):
                 shares[j, int(owner)] = 1.0
         return shares
 
+    # Optional abilities, declared here with their generic versions so that callers call
+    # them on any basis instead of probing for them; a basis overrides what it does
+    # faster (numpy_features, dot) or at all (dilated, cell_rectangles).
+    dilatable: bool = False
+    """Whether :meth:`dilated` grows the features by a margin (a SAC task's
+    ``final_margin``, the drone planner's); a basis that overrides it sets this."""
+
+    def numpy_features(self, states: np.ndarray) -> np.ndarray:
+        """``[..., l]`` :meth:`compute` of numpy joint states ``[..., N, d_s]``, without
+        :meth:`forward`'s checks (a planner's batches). Here through torch; a basis with a
+        faster numpy path overrides it, equal bit for bit."""
+        return self.compute(torch.as_tensor(states)).numpy()
+
+    def dot(self, states: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """``[...]`` :meth:`numpy_features` of joint states ``[..., N, d_s]`` times
+        ``weights [l]``; a basis that looks the weights up without building the
+        ``[..., l]`` features overrides it, equal bit for bit."""
+        return self.numpy_features(states) @ weights
+
+    def dilated(self, margin: float) -> ContinuousFeatureBasis:
+        """The same features, each firing within ``margin`` of where it fires here; only
+        a :attr:`dilatable` basis has them (cells that can be grown)."""
+        raise NotImplementedError(f"{self.label} cannot be grown by a margin (its "
+                                  f"dilatable is False).")
+
+    def cell_rectangles(self) -> np.ndarray:
+        """``[C, 4]`` float64 ``(x0, y0, x1, y1)`` of the cells its first ``C`` features
+        count, for maps of learned constraints; ``[0, 4]`` here: no feature is a cell."""
+        return np.zeros((0, 4))
+
     def forward(self, states: Any, actions: Any = None) -> torch.Tensor:
         """Features of joint states.
 

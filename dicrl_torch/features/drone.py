@@ -114,6 +114,8 @@ class CellOccupancyCostBasis(DroneFeatureBasis):
         # A buffer only to follow .to(device); it carries no state worth saving.
         self.register_buffer("_offsets", torch.arange(N_DRONES) * G * G, persistent=False)
 
+    dilatable = True
+
     def dilated(self, margin: float) -> CellOccupancyCostBasis:
         """The same features grown by ``margin`` metres (class docstring)."""
         return CellOccupancyCostBasis(self.proximity_radius, margin=margin)

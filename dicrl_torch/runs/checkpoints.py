@@ -32,7 +32,9 @@ from dicrl_torch.io import atomic_write
 # and the same overrides on resume give the uninterrupted run's history exactly.
 CHECKPOINT_KEYS = ("seed", "n_demonstrations", "split", "expert_temperature", "env", "features",
                    "solver", "graph", "algo")
-CHECKPOINT_IGNORED = ("solver.progress", "solver.planner", "algo.outer_iterations",
+# env.task names the function that builds the task from the config's other keys: how the
+# run was assembled, not what it trains (runs checkpointed before it existed resume).
+CHECKPOINT_IGNORED = ("env.task", "solver.progress", "solver.planner", "algo.outer_iterations",
                       "algo.threshold",
                       "algo.prune_min_gain", "algo.constraint_rule", "algo.certificate",
                       "algo.run_c_icrl", "algo.run_d_icrl", "algo.c_icrl_beside_learners")

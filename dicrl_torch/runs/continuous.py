@@ -28,7 +28,9 @@ Nothing here reads a config.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import inspect
 import json
 import shutil
 import stat
@@ -43,22 +45,26 @@ import torch
 from dicrl_torch.algos.dicrl import DICRL
 from dicrl_torch.algos.greedy import SACGreedyConstraintInference
 from dicrl_torch.algos.models import SACLearnerModel
-from dicrl_torch.checks import check_finite, check_int
+from dicrl_torch.checks import check_int
 from dicrl_torch.demos import partition_demonstrations
 from dicrl_torch.demos.continuous import save_continuous_demonstrations
 from dicrl_torch.envs.parallel import agg_axes, axes_image
+from dicrl_torch.features.continuous import ContinuousFeatureBasis
 from dicrl_torch.io import atomic_write
 from dicrl_torch.metrics import false_negative_rate, false_positive_rate, learned_constraints
+from dicrl_torch.runs.settings import (
+    EVAL_ACTIONS,
+    EVAL_POLICIES,
+    FINAL_SCORES,
+    GREEDY_BASELINE,
+    SACSettings,
+    with_defaults,
+)
+from dicrl_torch.runs.task import Rollouts, Task
 
-__all__ = ["EVAL_ACTIONS", "FINAL_SCORES", "GREEDY_BASELINE", "SACTask", "derived_seed",
-           "feature_strip"]
+__all__ = ["EVAL_ACTIONS", "EVAL_POLICIES", "FINAL_SCORES", "GREEDY_BASELINE", "SACTask",
+           "derived_seed", "feature_strip"]
 
-EVAL_ACTIONS: tuple[str, ...] = ("mean", "sampled")
-EVAL_POLICIES: tuple[str, ...] = ("sac", "plan")
-"""How a learner acts in the table's rollouts: the SAC policy of a last solve, or planning
-on its learned game with the nominal model (a task with :meth:`SACTask.make_planner`)."""
-FINAL_SCORES: tuple[str, ...] = ("penalised_return", "learned_success")
-GREEDY_BASELINE = "M(C)E-greedy"
 WARMUP_FILE = "warmup.pt"
 """The run directory's file of the SAC warm-up (:meth:`SACTask.bind_run_dir`)."""
 WARMUP_LINEAGES_DIR = "warmup_lineages"
@@ -89,8 +95,8 @@ def _file_stamp(path: Path) -> tuple[int, int, int] | None:
     return (st.st_ino, st.st_mtime_ns, st.st_size) if stat.S_ISREG(st.st_mode) else None
 
 
-class SACTask:
-    """A continuous game's task, for the runner (:class:`~dicrl_torch.runs.runner.Task`;
+class SACTask(Task):
+    """A continuous game's task, for the runner (:class:`~dicrl_torch.runs.task.Task`;
     module docstring): usable as it is for any game of the joint-env protocol, or
     subclassed for a game's own metrics and pictures.
 
@@ -105,43 +111,37 @@ class SACTask:
         true_constraints: ``[l_c]`` bool, the cost features that are true constraints of
             the game; None when the cost basis has no ground truth (FPR and FNR are then
             None: ``null`` in ``results.json``, N/A in the table).
-        eval_episodes: true-game rollouts per table row.
-        eval_action: ``"mean"`` or ``"sampled"``: the actions of the table's SR and CVR
-            (the row holds both).
+        eval_episodes, eval_action, eval_policy, planner: the table's rollouts
+            (:class:`~dicrl_torch.runs.settings.TableRollouts`); ``eval_policy="plan"``
+            plans with :meth:`make_planner` (the task's; the drone arena has one).
         timesteps, n_eval_episodes: SAC steps and rollouts per inner solve.
-        warmup_timesteps: pre-training steps on ``η(0), ω_c(0)`` (0: none).
-        warmup_restarts, warmup_checks: with either above 1, the warm-up runs
-            ``warmup_restarts`` lineages of ``warmup_timesteps`` steps each, scored after
-            each of ``warmup_checks`` chunks by the share of agents at their goals in the
-            nominal game (no constraint is known yet), and keeps the best chunk (a lineage
-            can strand an agent on a wall for good, and its visits become false
-            constraints; docs/drones.md).
+        warmup_timesteps, warmup_restarts, warmup_checks: the warm-up on ``η(0), ω_c(0)``
+            (:class:`~dicrl_torch.runs.settings.WarmUp`).
         init_reward_weights, init_multiplier, init_cost_weights: ``η(0)``, ``ω_c(0)``
             (the trainer's, the same numbers).
-        final_timesteps, final_checks, final_restarts, final_score: the last solve on
-            each learned ``(η̄, ω_c)``
-            (:meth:`~dicrl_torch.solvers.sac.SACConstrainedSolver.solve_keeping_best`).
-        final_margin: the last solve trains on the penalty of the cost basis grown by
-            this many metres (its ``dilated(margin)``), so that the deployed policy keeps
-            clear of its learned constraints instead of grazing them; 0: the cost basis.
-            The learned constraints and the scores are the cost basis's either way.
-        eval_policy: ``"sac"``: each row's policy is the SAC policy of a last solve;
-            ``"plan"``: no last solve, each learner acts by planning on its learned
-            ``(η̄, ω_c)`` in the nominal model (:meth:`make_planner`, the task's; the
-            drone arena has one), with ``planner`` its settings.
+        final_timesteps, final_checks, final_restarts, final_score, final_margin: the last
+            solve on each learned ``(η̄, ω_c)``, whose policy a row evaluates
+            (:class:`~dicrl_torch.runs.settings.LastSolve`; ``final_timesteps`` None:
+            ``timesteps``). The learned constraints and the scores are the cost basis's
+            whatever the margin.
         threshold: ``ω_c,j >= threshold`` marks a learned constraint.
         start_states: ``[P, N, d_s]`` joint states spanning the start distribution's
             support (:meth:`SACLearnerModel.start_features`); None: unknown.
         baseline: build M(C)E-greedy; ``baseline_*``: its settings
-            (:class:`~dicrl_torch.algos.greedy.SACGreedyConstraintInference`).
+            (:class:`~dicrl_torch.runs.settings.GreedyBaseline`).
 
     Raises:
-        ValueError: a setting out of range, demonstrations that do not fit the solver's
-            env, a split that does not fit them, or a true-constraint mask of the wrong
-            width.
+        InvalidSetting: a setting out of range (checked first:
+            :class:`~dicrl_torch.runs.settings.SACSettings`), naming it.
+        ValueError: demonstrations that do not fit the solver's env, a split that does not
+            fit them, a basis the settings cannot use, or a true-constraint mask of the
+            wrong width.
     """
 
     columns: tuple[str, ...] = ("FPR", "FNR", "CVR", "SR")
+    can_plan: bool = False
+    """Whether :meth:`make_planner` gives a planner (a game with a model of its nominal
+    dynamics, the drone arena's), which ``eval_policy="plan"`` needs."""
     game: str | None = None
     """The game a subclass is for (a basis built for another game's geometry, its
     ``game``, is refused); None: a user's own game, which takes only game-free bases."""
@@ -162,6 +162,18 @@ class SACTask:
                  baseline_max_constraints: int | None = None) -> None:
         from dicrl_torch.solvers.sac.protocol import as_continuous
 
+        # Every setting is checked before anything else is looked at.
+        s = self.settings = SACSettings.from_keywords(
+            split=split, seed=seed, eval_episodes=eval_episodes, eval_action=eval_action,
+            timesteps=timesteps, n_eval_episodes=n_eval_episodes,
+            warmup_timesteps=warmup_timesteps, warmup_restarts=warmup_restarts,
+            warmup_checks=warmup_checks, init_reward_weights=init_reward_weights,
+            init_multiplier=init_multiplier, init_cost_weights=init_cost_weights,
+            final_timesteps=final_timesteps, final_checks=final_checks,
+            final_restarts=final_restarts, final_score=final_score, final_margin=final_margin,
+            eval_policy=eval_policy, planner=planner, threshold=threshold, baseline=baseline,
+            baseline_penalty=baseline_penalty, baseline_timesteps=baseline_timesteps,
+            baseline_epsilon=baseline_epsilon, baseline_max_constraints=baseline_max_constraints)
         self.base = solver
         self.reward_basis, self.cost_basis = solver.reward_basis, solver.cost_basis
         for role, basis in (("reward", self.reward_basis), ("cost", self.cost_basis)):
@@ -173,62 +185,33 @@ class SACTask:
                     f"basis of this game (e.g. PositionCellBasis over its bounds, or your "
                     f"own ContinuousFeatureBasis).")
         demos = as_continuous(demos, solver.spec)  # refused, naming the fix, if unfit
-        if isinstance(split, str | bytes) or not isinstance(split, Sequence) or not split:
-            raise ValueError(f"split must be a non-empty list of positive ints (episodes "
-                             f"per learner), got {split!r}; e.g. split=[10, 10].")
-        self.split = [check_int("split entries", m) for m in split]
+        self.split = list(s.split)
         if sum(self.split) != demos.n_trajectories:
             raise ValueError(f"split {self.split} sums to {sum(self.split)}, but there are "
                              f"{demos.n_trajectories} demonstrations; make them agree.")
-        self.seed = check_int("seed", seed, 0)
-        self.eval_episodes = check_int("eval_episodes", eval_episodes)
-        if eval_action not in EVAL_ACTIONS:
-            raise ValueError(f"eval_action must be one of {list(EVAL_ACTIONS)}, got "
-                             f"{eval_action!r}.")
-        self.eval_action = str(eval_action)
-        self.timesteps = check_int("timesteps", timesteps, 0)
-        self.n_eval_episodes = check_int("n_eval_episodes", n_eval_episodes)
-        self.warmup_timesteps = check_int("warmup_timesteps", warmup_timesteps, 0)
-        self.warmup_restarts = check_int("warmup_restarts", warmup_restarts)
-        self.warmup_checks = check_int("warmup_checks", warmup_checks)
-        if self.warmup_timesteps and self.warmup_checks > self.warmup_timesteps:
-            raise ValueError(f"warmup_checks={warmup_checks} exceeds warmup_timesteps="
-                             f"{warmup_timesteps}: each scored chunk needs a step.")
-        self.eta0 = torch.full((solver.l_r + 1,), check_finite("init_reward_weights",
-                                                          init_reward_weights),
-                               dtype=torch.float64)
-        self.eta0[-1] = check_finite("init_multiplier", init_multiplier)
-        cw0 = check_finite("init_cost_weights", init_cost_weights)
-        if not 0.0 <= cw0 <= 1.0:
-            raise ValueError(f"init_cost_weights must lie in [0, 1], got {cw0}.")
-        self.cw0 = torch.full((solver.l_c,), cw0, dtype=torch.float64)
-        final_timesteps = self.timesteps if final_timesteps is None else final_timesteps
-        checks = check_int("final_checks", final_checks)
-        if final_score not in FINAL_SCORES:
-            raise ValueError(f"final_score must be one of {list(FINAL_SCORES)}, got "
-                             f"{final_score!r}.")
-        self.final = dict(timesteps=check_int("final_timesteps", final_timesteps, checks),
-                          checks=checks, restarts=check_int("final_restarts", final_restarts),
-                          score=str(final_score), margin=float(final_margin))
+        self.seed, self.timesteps, self.n_eval_episodes = s.seed, s.timesteps, s.n_eval_episodes
+        self.eval_episodes, self.eval_action = s.rollouts.episodes, s.rollouts.action
+        self.warmup_timesteps, self.warmup_restarts, self.warmup_checks = (
+            s.warmup.timesteps, s.warmup.restarts, s.warmup.checks)
+        self.eta0 = torch.full((solver.l_r + 1,), s.init_reward_weights, dtype=torch.float64)
+        self.eta0[-1] = s.init_multiplier
+        self.cw0 = torch.full((solver.l_c,), s.init_cost_weights, dtype=torch.float64)
+        self.final = dataclasses.asdict(s.last_solve)
         self.penalty_basis = None
         if self.final["margin"] != 0.0:
-            if not callable(getattr(self.cost_basis, "dilated", None)):
+            if not (isinstance(self.cost_basis, ContinuousFeatureBasis)
+                    and self.cost_basis.dilatable):
                 raise ValueError(
                     f"final_margin={final_margin!r} needs a cost basis that can be grown by a "
-                    f"margin (a dilated(margin) method, e.g. CellOccupancyCostBasis); "
+                    f"margin (dilatable, with dilated(margin), e.g. CellOccupancyCostBasis); "
                     f"{type(self.cost_basis).__name__} has none: set final_margin=0.")
             self.penalty_basis = self.cost_basis.dilated(self.final["margin"])
-        if eval_policy not in EVAL_POLICIES:
-            raise ValueError(f"eval_policy must be one of {list(EVAL_POLICIES)}, got "
-                             f"{eval_policy!r}.")
-        if eval_policy == "plan" and type(self).make_planner is SACTask.make_planner:
+        if s.rollouts.policy == "plan" and not self.can_plan:
             raise ValueError(f"eval_policy='plan' needs a model of the nominal game to plan "
                              f"in, which {type(self).__name__} does not give (the drone "
                              f"arena does); use eval_policy='sac'.")
-        self.eval_policy, self.planner_settings = str(eval_policy), dict(planner or {})
-        self.threshold = check_finite("threshold", threshold)
-        if not 0.0 < self.threshold <= 1.0:
-            raise ValueError(f"threshold must lie in (0, 1], got {threshold!r}.")
+        self.eval_policy, self.planner_settings = s.rollouts.policy, s.rollouts.planner
+        self.threshold = s.threshold
         if true_constraints is None:
             self.true = None
         else:
@@ -238,9 +221,7 @@ class SACTask:
                                  f"feature), got dtype {true.dtype} shape {true.shape}.")
             self.true = true.copy()
         self.start_states = start_states
-        self.baseline = dict(run=bool(baseline), penalty=float(baseline_penalty),
-                             timesteps=int(baseline_timesteps), epsilon=baseline_epsilon,
-                             max_constraints=baseline_max_constraints)
+        self.baseline = dataclasses.asdict(s.baseline)
         self.demos = demos
         self.shards = list(partition_demonstrations(demos, self.split))
         self._warm = False
@@ -248,10 +229,19 @@ class SACTask:
         self._stale: dict[Path, tuple[int, int, int]] = {}  # files of another config
         self._warmup_key: str | None = None
         self._process, self._processes = 0, 1
-        # The rollouts of the row evaluate_learner or baseline_row gave last, for the
-        # runner's next constraint_map of that row (which empties it).
-        self._paths: list[np.ndarray] = []
-        self._greedy: dict[str, SACGreedyConstraintInference] = {}
+
+    @classmethod
+    def check_settings(cls, **settings: Any) -> SACSettings:
+        """The checked settings of ``SACTask(**settings, ...)`` (its keyword arguments of
+        :meth:`SACSettings.from_keywords`' names; the others at their defaults), building
+        nothing: a config's values are checked with it before anything is computed.
+
+        Raises:
+            InvalidSetting: the first setting out of range, naming it.
+        """
+        names = inspect.signature(SACSettings.from_keywords).parameters
+        return SACSettings.from_keywords(**with_defaults(SACTask.__init__, list(names),
+                                                         settings))
 
     # ------------------------------------------------------------------ set-up
     def describe(self) -> str:
@@ -566,32 +556,34 @@ class SACTask:
                "SR": ev.success_rate, "CVR": ev.violation_rate}
         return row, list(ev.paths)
 
-    def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True) -> dict:
+    def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True
+                         ) -> tuple[dict, Rollouts]:
         """A last solve on the learned ``(η̄, ω_c)``, then the true-game row (with
-        ``eval_policy="plan"``: planning on it instead of a last solve)."""
+        ``eval_policy="plan"``: planning on it instead of a last solve) and its rollouts
+        (of :meth:`evaluate_policy`, ``eval_action``'s)."""
         eta, cw = trainer.state.eta_bar[i], trainer.state.cost_weights[i]
         mask = learned_constraints(cw, self.threshold)
         solver = trainer.learner_model.inner_solver(i)
         if self.eval_policy == "plan":
-            row, self._paths = self.evaluate_planned(
+            row, paths = self.evaluate_planned(
                 solver, np.asarray(eta, dtype=np.float64), np.asarray(cw, dtype=np.float64),
                 mask, derived_seed(self.seed, 4, i),
                 progress=self._planning_label(trainer, i) if progress else None)
             row.update(self.rates(mask), multiplier=float(eta[-1]),
                        reward_weights=eta[:-1].tolist(), policy_timesteps=None,
                        final_checks=None)
-            return row
+            return row, paths
         f = self.final
         kept = solver.solve_keeping_best(
             eta, cw, f["timesteps"], checks=f["checks"], restarts=f["restarts"],
             deterministic=self.eval_action == "mean",
             constraints=mask if f["score"] == "learned_success" else None,
             penalty_basis=self.penalty_basis)
-        row, self._paths = self._evaluate_true_game(solver)
+        row, paths = self._evaluate_true_game(solver)
         row.update(self.rates(mask), multiplier=float(eta[-1]),
                    reward_weights=eta[:-1].tolist(), policy_timesteps=kept.timesteps,
                    final_checks=solver.last_checks)
-        return row
+        return row, paths
 
     @staticmethod
     def _planning_label(trainer: DICRL, i: int) -> str:
@@ -617,7 +609,8 @@ class SACTask:
         return out
 
     # ------------------------------------------------------------------ baseline
-    def make_baselines(self, methods: dict[str, dict], progress: bool = True) -> dict:
+    def make_baselines(self, methods: dict[str, dict], progress: bool = True
+                       ) -> dict[str, SACGreedyConstraintInference]:
         """M(C)E-greedy given D-ICRL's learned reward (learner 1's ω_r), on every
         demonstration (the paper's protocol); nothing before D-ICRL has a row."""
         b = self.baseline
@@ -629,12 +622,15 @@ class SACTask:
                                         dtype=torch.float64),
             demonstrations=self.demos, penalty=b["penalty"], timesteps=b["timesteps"],
             epsilon=b["epsilon"], max_constraints=b["max_constraints"], progress=progress)
-        self._greedy = {GREEDY_BASELINE: greedy}
-        return dict(self._greedy)
+        return {GREEDY_BASELINE: greedy}
 
-    def baseline_row(self, name: str, result) -> tuple[dict, list[dict]]:
+    def baseline_row(self, name: str, greedy: SACGreedyConstraintInference, result
+                     ) -> tuple[dict, list[dict], Rollouts]:
+        """The true-game row of ``greedy``'s final policy (its solver's) with its
+        constraint set ``result.constraint_mask``, the per-step history (FPR, FNR and
+        log-likelihood after each constraint added) and the row's rollouts."""
         mask = result.constraint_mask.numpy()
-        row, self._paths = self._evaluate_true_game(self._greedy[name].solver)
+        row, paths = self._evaluate_true_game(greedy.solver)
         row.update(self.rates(mask), stop_reason=result.stop_reason)
         history, sel = [], np.zeros_like(mask)
         for k, ll in enumerate(result.log_likelihood):
@@ -643,21 +639,13 @@ class SACTask:
             rates = self.rates(sel)
             history.append({"step": k, "added": result.added_names[k - 1] if k else None,
                             "log_likelihood": ll, "FPR": rates["FPR"], "FNR": rates["FNR"]})
-        return row, history
-
-    def annotate(self, methods: dict) -> dict | None:
-        """No identifiability record unless a subclass computes one."""
-        return None
+        return row, history, paths
 
     # ------------------------------------------------------------------ pictures
-    def reference_rows(self) -> dict[str, dict]:
-        """None here: a game with experts to fly adds theirs."""
-        return {}
-
-    def constraint_map(self, label: str, row: dict) -> np.ndarray:
+    def constraint_map(self, label: str, row: dict, rollouts: Rollouts = ()) -> np.ndarray:
         """The cost features as a strip: learned ones filled (red), true ones outlined
-        (black); a game with a map of its own overrides it."""
-        self._paths = []
+        (black), without the ``rollouts`` (a strip has no space to draw them in); a game
+        with a map of its own overrides it."""
         return feature_strip(self.learned_mask(row), self.true,
                              title=f"{label}: {int(self.learned_mask(row).sum())} learned "
                                    f"constraints of {self.cost_basis.dim} features")

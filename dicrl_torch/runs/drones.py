@@ -34,6 +34,7 @@ import numpy as np
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations, save_drone_demonstrations
 from dicrl_torch.envs.drones import render_arena, start_support
 from dicrl_torch.runs.continuous import GREEDY_BASELINE, SACTask, derived_seed
+from dicrl_torch.runs.task import Rollouts
 from dicrl_torch.solvers.drone_planning import (
     PLANNER_DEFAULTS,
     check_planner_settings,
@@ -69,10 +70,17 @@ class DroneTask(SACTask):
             ``baseline*``).
     """
 
+    can_plan = True  # make_planner: the nominal arena's dynamics
     game = "drones"
+    # make_planner's caches: the nominal dynamics (one env read, not one per episode)
+    # and the grid values of the last learned game planned on (every episode shares them).
+    _nominal_model = None
+    _grid_cache: tuple = (None, None)
 
     def __init__(self, *, solver, reward_basis, cost_basis, split: Sequence[int], seed: int,
                  final_score: str = "learned_success", dynamics=None, **settings) -> None:
+        # The settings before the planner's pairs, which take seconds.
+        self.check_settings(split=split, seed=seed, final_score=final_score, **settings)
         # The planner flies its pairs with the learners' dynamics, for the arena's
         # default 30 s: a shorter learner episode limit must not make it fail.
         self.drone_demos = make_drone_demonstrations(
@@ -93,7 +101,7 @@ class DroneTask(SACTask):
         (:func:`~dicrl_torch.solvers.drone_planning.drone_planner`, with the learner's env's
         dynamics and this run's settings). One planning problem (episode) per seed."""
         settings = {**PLANNER_DEFAULTS, **self.planner_settings}
-        if getattr(self, "_nominal_model", None) is None:  # one env read, not one per episode
+        if self._nominal_model is None:
             arena = self.base.env_factory(constrained=False).arena
             self._nominal_model = arena.dynamics
         dynamics = self._nominal_model
@@ -109,7 +117,7 @@ class DroneTask(SACTask):
         (cached for the last weights: every episode's planner shares them)."""
         key = (eta.tobytes(), cost_weights.tobytes(), constraints.tobytes(),
                tuple(sorted(settings.items())))
-        if getattr(self, "_grid_cache", (None,))[0] == key:
+        if self._grid_cache[0] == key:
             return self._grid_cache[1]
         values = drone_grid_values(
             self.reward_basis, self.cost_basis, eta, cost_weights, constraints,
@@ -135,12 +143,12 @@ class DroneTask(SACTask):
                 f"door and {solution.violation_rate:.2f} cross a true constraint")
 
     # ------------------------------------------------------------------ pictures
-    def constraint_map(self, label: str, row: dict) -> np.ndarray:
-        """Fig. 3c: the learned constraint cells (hatched) and up to 9 rollouts of the row
-        evaluated last (none for a row taken from a checkpoint)."""
+    def constraint_map(self, label: str, row: dict, rollouts: Rollouts = ()) -> np.ndarray:
+        """Fig. 3c: the learned constraint cells (hatched) and up to 9 of the row's
+        ``rollouts`` (joint states ``[L+1, 2, 4]``; none for a row taken from a
+        checkpoint)."""
         mask = self.learned_mask(row)
-        # The rollouts' joint states [L+1, 2, 4]: the drones' positions are columns 0-1.
-        paths, self._paths = [p[:, :, :2] for p in self._paths[:9]], []
+        paths = [p[:, :, :2] for p in list(rollouts)[:9]]  # the drones' positions
         return render_arena(trajectories=paths, constraint_cells=mask,
                             title=f"{label}: learned constraints (hatched) and "
                                   f"{len(paths)} rollouts")

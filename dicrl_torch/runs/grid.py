@@ -9,6 +9,7 @@ metrics, table rows, the greedy baselines, the reference rows and the paper's Fi
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,16 +51,13 @@ from dicrl_torch.metrics import (
     rollout_true_cmg,
     true_constraints_of,
 )
+from dicrl_torch.runs.settings import GRID_BASELINES, GridSettings, with_defaults
+from dicrl_torch.runs.task import Rollouts, Task
 from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 
 # What GridTask.annotate adds to every learned row (null where it cannot be computed).
 ANNOTATIONS = ("FNR_required", "n_demonstrated", "n_required", "n_undetermined",
                "contradictions")
-# How a trained learner's η̄ and ω_c become its constraint set (docs/design.md §6):
-# "certificate" (ours, certify_constraints) or "threshold" (the paper's ω_c,j >= threshold).
-CONSTRAINT_RULES = ("certificate", "threshold")
-# The baselines' table rows (names as in the paper) and the greedy's demonstrator model.
-GRID_BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
 
 
 def constraint_names(names: Sequence[str], learned) -> list[str]:
@@ -168,7 +166,7 @@ def concatenate(shards: Sequence[Demonstrations]) -> Demonstrations:
                           n_cells=shards[0].n_cells, n_actions=shards[0].n_actions)
 
 
-class GridTask:
+class GridTask(Task):
     """The grid world's run: problem, evaluation, baselines and figures.
 
     Args:
@@ -198,6 +196,11 @@ class GridTask:
             trajectory), or None to keep them all (threshold rule).
         baselines: greedy rows to run (``"ME-greedy"``, ``"MCE-greedy"``).
         baseline_epsilon, baseline_max_constraints: the greedy's stopping rule.
+
+    Raises:
+        InvalidSetting: a setting out of range (checked before anything is solved:
+            :class:`~dicrl_torch.runs.settings.GridSettings`), naming it.
+        ValueError: a cost basis the certificate cannot use, shard files that do not fit.
     """
 
     columns = ("CR", "FPR", "FNR", "FNR_required", "CVR", "RFD")
@@ -214,41 +217,37 @@ class GridTask:
                  threshold: float = 0.5, prune_min_gain: float | None = None,
                  baselines: Sequence[str] = (), baseline_epsilon: float | None = None,
                  baseline_max_constraints: int | None = None) -> None:
-        unknown = [b for b in baselines if b not in GRID_BASELINES]
-        if unknown:
-            raise ValueError(f"Unknown grid baselines {unknown}; choose from "
-                             f"{list(GRID_BASELINES)}.")
+        s = GridSettings(
+            split=split, seed=seed, eval_episodes=eval_episodes,
+            expert_temperature=expert_temperature, constraint_rule=constraint_rule,
+            certificate_temperature=certificate_temperature,
+            certificate_min_probability=certificate_min_probability, threshold=threshold,
+            prune_min_gain=prune_min_gain, baselines=baselines,
+            baseline_epsilon=baseline_epsilon, baseline_max_constraints=baseline_max_constraints)
         self.layout, self.model, self.solver = layout, model, solver
         self.reward_basis, self.cost_basis = reward_basis, cost_basis
-        self.split = [int(m) for m in split]
-        if constraint_rule not in CONSTRAINT_RULES:
-            raise ValueError(f"constraint_rule must be one of {CONSTRAINT_RULES}, got "
-                             f"{constraint_rule!r}.")
-        if not (certificate_temperature >= 0.0 and 0.0 < certificate_min_probability <= 1.0):
-            raise ValueError(f"The certificate needs a temperature >= 0 and a "
-                             f"min_probability in (0, 1]; got {certificate_temperature!r} "
-                             f"and {certificate_min_probability!r}.")
-        if constraint_rule == "certificate":
+        self.split = list(s.split)
+        if s.constraint_rule == "certificate":
             try:
                 check_indicator_basis(cost_basis, model)
             except ValueError as e:
                 raise ValueError(f"{e} The certificate needs such a basis; with this one keep "
                                  f"the paper's rule: constraint_rule='threshold' "
                                  f"(algo.constraint_rule=threshold).") from None
-        self.constraint_rule = constraint_rule
-        self.certificate = {"temperature": float(certificate_temperature),
-                            "min_probability": float(certificate_min_probability)}
-        self.threshold, self.prune_min_gain = float(threshold), prune_min_gain
-        self.expert_temperature = float(expert_temperature)
+        self.constraint_rule = s.constraint_rule
+        self.certificate = {"temperature": s.certificate_temperature,
+                            "min_probability": s.certificate_min_probability}
+        self.threshold, self.prune_min_gain = s.threshold, s.prune_min_gain
+        self.expert_temperature = s.expert_temperature
         self._identifiability: Identifiability | None = None
-        self.baseline_names = list(baselines)
-        self.baseline_epsilon = baseline_epsilon
-        self.baseline_max_constraints = baseline_max_constraints
+        self.baseline_names = list(s.baselines)
+        self.baseline_epsilon = s.baseline_epsilon
+        self.baseline_max_constraints = s.baseline_max_constraints
         self.shard_files = None if shard_files is None else list(shard_files)
         reward_table = reward_basis().weighted(true_reward_weights).local[:, :, 0]
         self.evaluation = GridEvaluation(
-            model=model, layout=layout, reward_table=reward_table, episodes=int(eval_episodes),
-            seed=int(seed), true_reward_weights=true_reward_weights,
+            model=model, layout=layout, reward_table=reward_table, episodes=s.eval_episodes,
+            seed=s.seed, true_reward_weights=true_reward_weights,
             true_constraints=true_constraints_of(cost_basis))
         self.experts = self.nominal = None
         if with_experts:
@@ -261,12 +260,25 @@ class GridTask:
             if self.experts is None:
                 raise ValueError("Sampled demonstrations need the experts: with_experts=True.")
             self.demos: Demonstrations | None = sample_trajectories(
-                self.experts, sum(self.split), np.random.default_rng(seed))
+                self.experts, sum(self.split), np.random.default_rng(s.seed))
             self.shards: list[Demonstrations | None] = list(
                 partition_demonstrations(self.demos, self.split))
         else:
             self.shards = load_shard_files(self.shard_files, self.split, model, read_shards)
             self.demos = None if None in self.shards else concatenate(self.shards)
+
+    @classmethod
+    def check_settings(cls, **settings: Any) -> GridSettings:
+        """The checked settings of ``GridTask(**settings, ...)`` (keyword arguments named
+        as :class:`~dicrl_torch.runs.settings.GridSettings`' fields; the others at their
+        defaults), building nothing: a config's values are checked with it before
+        anything is computed.
+
+        Raises:
+            InvalidSetting: the first setting out of range, naming it.
+        """
+        names = [f.name for f in dataclasses.fields(GridSettings)]
+        return GridSettings(**with_defaults(cls.__init__, names, settings))
 
     # ------------------------------------------------------------------ set-up
     def describe(self) -> str:
@@ -283,10 +295,6 @@ class GridTask:
             save_demonstrations(out / "demos.npz", self.demos)
         self.make_baselines({}, progress=False)  # a baseline that cannot run fails now
         print(self.describe())
-
-    def bind_run_dir(self, out: Path, training_config: dict, *, process: int = 0,
-                     processes: int = 1) -> None:
-        """Nothing to keep or share: the exact solver has no pre-training."""
 
     def learner_model(self, local_ids: Sequence[int], shards: Sequence, stream: int
                       ) -> TabularLearnerModel:
@@ -311,10 +319,12 @@ class GridTask:
         return metrics
 
     # ------------------------------------------------------------------ table rows
-    def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True) -> dict:
+    def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True
+                         ) -> tuple[dict, Rollouts]:
         """The table row of local learner ``i``: its policy π_{η̄, ω_c} rolled out, and its
         constraint set by ``constraint_rule`` (the threshold rule prunes ω_c first, if
-        asked, and the pruned ω_c is the policy's)."""
+        asked, and the pruned ω_c is the policy's); no rollouts kept (the map shows
+        cells, not paths)."""
         ev = self.evaluation
         names = list(self.cost_basis.names)
         raw = learned_constraints(trainer.state.cost_weights[i], self.threshold)
@@ -352,14 +362,11 @@ class GridTask:
                    SR=None, multiplier=float(trainer.state.eta_bar[i, -1]),
                    n_learned=int(learned.sum()))
         row["constraints"] = constraint_names(names, learned)
-        return row
+        return row, ()
 
-    def row_scalars(self, row: dict) -> list[tuple[str, float, int]]:
-        return []
-
-    def constraint_map(self, label: str, row: dict) -> np.ndarray:
+    def constraint_map(self, label: str, row: dict, rollouts: Rollouts = ()) -> np.ndarray:
         """PNG-ready map of a row's learned cell (and region) constraints (red crosses)
-        over the true obstacles (bright)."""
+        over the true obstacles (bright); ``rollouts`` (none are kept) are not drawn."""
         heat = np.zeros(self.layout.n_cells)
         heat[obstacle_cells(self.layout)] = 1.0
         cells = constraint_cells(self.layout, row["constraints"], self.cost_basis.region_cells)
@@ -393,9 +400,11 @@ class GridTask:
                     progress=progress)
                 for name in self.baseline_names}
 
-    def baseline_row(self, name: str, result: GreedyResult) -> tuple[dict, list[dict]]:
-        """A finished greedy baseline's table row and its per-step history (FPR, FNR and
-        log-likelihood after each constraint added)."""
+    def baseline_row(self, name: str, greedy: GreedyConstraintInference,
+                     result: GreedyResult) -> tuple[dict, list[dict], Rollouts]:
+        """A finished greedy baseline's table row, its per-step history (FPR, FNR and
+        log-likelihood after each constraint added) and no rollouts; ``result`` holds
+        all it needs (its policy), ``greedy`` is not read."""
         ev = self.evaluation
         mask = torch.zeros_like(result.constraint_mask)
         history = []
@@ -410,7 +419,7 @@ class GridTask:
         row.update(ev.rates(result.constraint_mask), RFD=None, SR=None,
                    n_learned=len(result.added), stop_reason=result.stop_reason)
         row["constraints"] = constraint_names(self.cost_basis.names, result.constraint_mask)
-        return row, history
+        return row, history, ()
 
     # ------------------------------------------------------------------ identifiability
     def identifiability(self) -> Identifiability | None:

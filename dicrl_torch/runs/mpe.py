@@ -81,9 +81,11 @@ from dicrl_torch.envs.mpe import (
     render_spread,
     sample_starts,
 )
-from dicrl_torch.features.continuous import PositionCellBasis
+from dicrl_torch.features.continuous import ContinuousFeatureBasis, PositionCellBasis
 from dicrl_torch.features.mpe import LandmarkRewardBasis
+from dicrl_torch.metrics import true_constraints_of
 from dicrl_torch.runs.continuous import SACTask, derived_seed
+from dicrl_torch.runs.task import Rollouts
 
 __all__ = ["ANNOTATIONS", "ControllerPolicy", "MPETask", "build_mpe_task",
            "spread_joint_env", "spread_start_states",
@@ -243,7 +245,7 @@ def _check_demonstrations(demos: ContinuousDemonstrations, spec: Any,
 class MPETask(SACTask):
     """The constrained MPE spread's run (module docstring): problem, evaluation,
     identifiability, baseline and figures, for the runner
-    (:class:`~dicrl_torch.runs.runner.Task`).
+    (:class:`~dicrl_torch.runs.task.Task`).
 
     Args:
         solver: an untrained :class:`~dicrl_torch.solvers.sac.SACConstrainedSolver` whose
@@ -281,6 +283,8 @@ class MPETask(SACTask):
                  demos: ContinuousDemonstrations | str | os.PathLike[str] | None = None,
                  expert_kwargs: Mapping[str, Any] | None = None,
                  true_constraints: Any = "auto", **settings: Any) -> None:
+        # The settings before the experts' demonstrations, which take seconds.
+        self.check_settings(split=split, seed=seed, **settings)
         if not isinstance(layout, SpreadLayout):
             raise ValueError(f"layout must be a SpreadLayout, got {type(layout).__name__}.")
         self.layout = layout
@@ -329,9 +333,7 @@ class MPETask(SACTask):
             return cost_basis.true_constraints(
                 disc_centre=lay.disc_centre, disc_radius=lay.disc_radius,
                 min_distance=lay.min_distance or None).numpy()
-        if callable(getattr(cost_basis, "true_constraints", None)):
-            return np.asarray(cost_basis.true_constraints(), dtype=bool)
-        return None
+        return true_constraints_of(cost_basis)  # a ConstraintBasis's own, or None
 
     # ------------------------------------------------------------------ experts
     def _env(self, constrained: bool) -> ConstrainedSpread:
@@ -417,11 +419,12 @@ class MPETask(SACTask):
         return (float(success.mean()), float(violated.mean()),
                 [p[:, :, :2] for p in ev.paths])
 
-    def constraint_map(self, label: str, row: dict) -> np.ndarray:
-        """The learned constraint cells (hatched) and up to 9 rollouts of the row
-        evaluated last (none for a row taken from a checkpoint)."""
+    def constraint_map(self, label: str, row: dict, rollouts: Rollouts = ()) -> np.ndarray:
+        """The learned constraint cells (hatched) and up to 9 of the row's ``rollouts``
+        (positions ``[L+1, N, 2]``, :meth:`evaluate_policy`'s; none for a row taken from
+        a checkpoint)."""
         mask = self.learned_mask(row)
-        paths, self._paths = self._paths[:9], []
+        paths = list(rollouts)[:9]
         return render_spread(
             self.layout, cells=self._cells(mask), trajectories=paths,
             title=self._title(f"{label}: learned constraints (hatched)", mask))
@@ -435,9 +438,10 @@ class MPETask(SACTask):
 
     def _rectangles(self) -> np.ndarray:
         """``[C, 4]`` the cost basis's cells ``(x0, y0, x1, y1)``, its first ``C``
-        features (``[0, 4]`` for a basis without cells)."""
-        rects = getattr(self.cost_basis, "cell_rectangles", None)
-        return np.asarray(rects()) if callable(rects) else np.zeros((0, 4))
+        features (``[0, 4]`` for a basis without cells, or not a ContinuousFeatureBasis)."""
+        if not isinstance(self.cost_basis, ContinuousFeatureBasis):
+            return np.zeros((0, 4))
+        return np.asarray(self.cost_basis.cell_rectangles())
 
     def _cells(self, mask: np.ndarray) -> np.ndarray:
         """``[K, 4]`` rectangles of the cell features in ``mask`` ``[l_c]`` bool."""

@@ -17,7 +17,7 @@ def results_record(*, experiment: str, config: Mapping[str, Any], t_start: float
     ``wall_s``, this process's time since ``t_start``, and ``training_s``, each trained
     method's outer iterations summed over every process that ran them, and each greedy
     baseline's ``baseline_seconds`` (its candidates' solves, also summed over resumes).
-    A run resumed across sessions thus still reports what its training took (its
+    A run resumed in another process thus still reports what its training took (its
     ``wall_s`` counts only the last segment). For the same reason the history's
     per-iteration ``seconds`` are left out.
 

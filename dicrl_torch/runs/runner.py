@@ -2,12 +2,12 @@
 exact resume, evaluate, run the baselines, and write ``results.json``, the table, the
 figures and TensorBoard values (docs/design.md §2, §8).
 
-An environment plugs in as a *task* (:class:`Task`: :class:`dicrl_torch.runs.grid.GridTask`,
-:class:`dicrl_torch.runs.drones.DroneTask`). The runner never reads a config: the entry
-point (``experiments/train.py``) builds the task, the :class:`RunSettings`, the
-:class:`TrainerSpec` and the communicators, and calls :func:`run_all_in_one` (every
-learner in this process) or, one process per learner, :func:`run_learner` in each and
-:func:`finish` in the main one.
+An environment plugs in as a *task*, a subclass of :class:`~dicrl_torch.runs.task.Task`
+(:class:`dicrl_torch.runs.grid.GridTask`, :class:`dicrl_torch.runs.continuous.SACTask`
+and its games). The runner never reads a config: the entry point (``experiments/train.py``)
+builds the task, the :class:`RunSettings`, the :class:`TrainerSpec` and the
+communicators, and calls :func:`run_all_in_one` (every learner in this process) or, one
+process per learner, :func:`run_learner` in each and :func:`finish` in the main one.
 """
 
 from __future__ import annotations
@@ -20,81 +20,22 @@ import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
-
-import numpy as np
+from typing import Any
 
 from dicrl_torch.algos.callbacks import InnerScalars
-from dicrl_torch.algos.dicrl import DICRL, StepSizes
+from dicrl_torch.algos.dicrl import DICRL, StepSizes, check_trainer_options
 from dicrl_torch.algos.greedy import ResumeMismatchError
+from dicrl_torch.checks import setting_bool, setting_int
 from dicrl_torch.figures import save_png
 from dicrl_torch.io import write_json
 from dicrl_torch.runs.callbacks import CheckpointEvery, OuterMetrics, RunOf, TensorBoardValues
 from dicrl_torch.runs.checkpoints import Checkpoints, progress_of
 from dicrl_torch.runs.results import print_table, print_timings, results_record
 from dicrl_torch.runs.signals import Interrupted, StopOnSignal, stoppable
+from dicrl_torch.runs.task import Rollouts, Task
 
 FINAL_WAIT_S = 6 * 3600.0
 """Seconds a learner process waits, after writing its row, for the slowest learner's."""
-
-
-class Task(Protocol):
-    """What the runner asks of an environment (grid world, drone arena, ...).
-
-    Attributes:
-        split: trajectories per learner (public: it scales the steps).
-        shards: each learner's demonstrations (None for another process's learner).
-        demos: every learner's demonstrations pooled (C-ICRL's and the baselines' data).
-        columns: the metric columns of the printed table.
-    """
-
-    split: list[int]
-    shards: list[Any]
-    demos: Any
-    columns: tuple[str, ...]
-
-    def describe(self) -> str: ...
-
-    def announce(self, out: Path) -> None:
-        """Printed (and the demonstrations saved) once per run, by the main process."""
-
-    def bind_run_dir(self, out: Path, training_config: dict, *, process: int = 0,
-                     processes: int = 1) -> None:
-        """The run directory, in every process of the run before it trains: a task may
-        keep there what it computes once per run (the SAC warm-up), keyed by the run's
-        ``training_config``, and share that work between the ``processes`` learner
-        processes that reach it together (this one is ``process``)."""
-
-    def learner_model(self, local_ids: Sequence[int], shards: Sequence, stream: int):
-        """The learner model of a trainer over ``local_ids`` holding ``shards`` (stream 0:
-        D-ICRL, 1: C-ICRL)."""
-
-    def outer_metrics(self, trainer: DICRL, rollouts: bool) -> dict[str, list]: ...
-
-    def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True) -> dict: ...
-
-    def evaluation_settings(self) -> dict[str, Any]: ...
-
-    def constraint_map(self, label: str, row: dict) -> np.ndarray: ...
-
-    def row_scalars(self, row: dict) -> list[tuple[str, float, int]]:
-        """Extra TensorBoard ``(tag, value, step)`` of a learner's row (may be empty)."""
-
-    def reference_rows(self) -> dict[str, dict]: ...
-
-    def annotate(self, methods: dict) -> dict | None:
-        """Adds task-level metrics to the learned rows (the grid: FNR_required and the
-        identifiability counts); returns ``results.json``'s ``identifiability`` record."""
-
-    def make_baselines(self, methods: dict[str, dict], progress: bool = True) -> dict:
-        """The greedy baselines by row name, built but not run; ``methods`` holds the rows
-        of the methods trained so far (a baseline may build on them, e.g. the drones'
-        greedy on D-ICRL's learned reward)."""
-
-    def baseline_row(self, name: str, result) -> tuple[dict, list[dict]]: ...
-
-    def figures(self, *, methods: dict, histories: dict, experiment: str,
-                eval_every: int) -> dict[str, np.ndarray]: ...
 
 
 @dataclass
@@ -110,6 +51,9 @@ class RunSettings:
             CR/CVR rollouts of the curves, between checkpoints.
         resume: continue from the run directory's checkpoints.
         run_d_icrl, run_c_icrl: which bi-level methods to train.
+
+    Raises:
+        InvalidSetting: a setting out of range, naming it (checked on construction).
     """
 
     experiment: str
@@ -122,6 +66,19 @@ class RunSettings:
     run_d_icrl: bool = True
     run_c_icrl: bool = True
 
+    def __post_init__(self) -> None:
+        self.outer_iterations = setting_int("outer_iterations", self.outer_iterations,
+                                            example=20)
+        self.eval_every = setting_int(
+            "eval_every", self.eval_every, example=5,
+            why="outer iterations between the CR/CVR evaluations of the curves")
+        self.checkpoint_every = setting_int("checkpoint_every", self.checkpoint_every,
+                                            example=1, why="outer iterations between "
+                                                           "checkpoints")
+        self.resume = setting_bool("resume", self.resume)
+        self.run_d_icrl = setting_bool("run_d_icrl", self.run_d_icrl)
+        self.run_c_icrl = setting_bool("run_c_icrl", self.run_c_icrl)
+
 
 @dataclass
 class TrainerSpec:
@@ -133,6 +90,10 @@ class TrainerSpec:
         inner_step: the constant step of ``inner_method="gradient_tracking"``.
         n_shards: the number of learners of the distributed run (``len(split)``).
         options: the other :class:`~dicrl_torch.algos.dicrl.DICRL` keyword arguments.
+
+    Raises:
+        InvalidSetting: an option out of range, naming it (checked on construction, as
+            the trainer would: :func:`~dicrl_torch.algos.dicrl.check_trainer_options`).
     """
 
     schedules: Callable[[int], tuple[Any, Any]]
@@ -140,6 +101,9 @@ class TrainerSpec:
     inner_step: float
     n_shards: int
     options: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check_trainer_options(inner_step=self.inner_step, **self.options)
 
     def kwargs(self, n_learners: int) -> dict[str, Any]:
         """Keyword arguments of a trainer of ``n_learners`` learners (C-ICRL: 1).
@@ -177,12 +141,15 @@ def run_name(method: str, learner: int) -> str:
     return file_stem(method).lower().replace("-", "_")
 
 
-def log_row(task: Task, logger, run: str, label: str, row: dict, step: int,
-            png: Path) -> None:
-    """A table row's constraint map (PNG and TensorBoard) and its final ``eval/`` values."""
-    img = task.constraint_map(label, row)
-    logger.image(run, "eval/constraint_map", img, step)
-    save_png(png, img)
+def log_row(task: Task, logger, run: str, label: str, row: dict, rollouts: Rollouts,
+            step: int, png: Path) -> None:
+    """A table row's constraint map, drawn with the rollouts the row was measured on
+    (PNG and TensorBoard; none where the task draws none), and its final ``eval/``
+    values."""
+    img = task.constraint_map(label, row, rollouts)
+    if img is not None:
+        logger.image(run, "eval/constraint_map", img, step)
+        save_png(png, img)
     for key in ("CR", "CVR", "SR"):
         value = row.get("CR_mean" if key == "CR" else key)
         if value is not None:
@@ -217,7 +184,8 @@ def evaluate_method(name: str, trainer: DICRL, *, task: Task, settings: RunSetti
     """Rows, constraint maps and final TensorBoard values of the trainer's local learners.
 
     The rows are checkpointed; a resumed run takes them from there instead of evaluating
-    again (for the grid: pruning, minutes per learner at 3 experts).
+    again (for the grid: pruning, minutes per learner at 3 experts). The checkpoint keeps
+    no rollouts: such a row's map is drawn without them.
     """
     evaluation, n = task.evaluation_settings(), trainer.state.outer_iteration
     saved = ckpt.evaluated_rows(name, n, evaluation)
@@ -226,9 +194,12 @@ def evaluate_method(name: str, trainer: DICRL, *, task: Task, settings: RunSetti
     rows = []
     step = settings.outer_iterations
     for i, v in enumerate(trainer.local):
-        row = saved[i] if saved is not None else task.evaluate_learner(trainer, i, progress)
+        if saved is None:
+            row, rollouts = task.evaluate_learner(trainer, i, progress)
+        else:
+            row, rollouts = saved[i], ()
         label = f"{name} learner {v + 1}"
-        log_row(task, logger, run_of(v), label, row, step,
+        log_row(task, logger, run_of(v), label, row, rollouts, step,
                 out / f"constraints_{file_stem(name)}_{v + 1}.png")
         rows.append(row)
     if saved is None:
@@ -279,19 +250,19 @@ def run_baselines(task: Task, trained_rows: dict[str, dict], *, logger, out: Pat
     Every greedy step (a constraint added) logs ``eval/FPR``, ``eval/FNR`` and
     ``greedy/log_likelihood`` at step ``k`` = constraints added so far, under the run
     named after the baseline (``me_greedy``); the final policy is evaluated as the
-    other rows.
+    other rows, by the task given the greedy itself (:meth:`Task.baseline_row`).
     """
     methods, histories, seconds = {}, {}, {}
     for name, greedy in task.make_baselines(trained_rows).items():
         res = run_greedy(name, greedy, ckpt, stop)
         run = run_name(name, 0)
-        row, history = task.baseline_row(name, res)
+        row, history, rollouts = task.baseline_row(name, greedy, res)
         for h in history:
             for key, tag in (("FPR", "eval/FPR"), ("FNR", "eval/FNR"),
                              ("log_likelihood", "greedy/log_likelihood")):
                 if h.get(key) is not None:
                     logger.scalar(run, tag, h[key], h["step"])
-        log_row(task, logger, run, name, row, len(res.added),
+        log_row(task, logger, run, name, row, rollouts, len(res.added),
                 out / f"constraints_{file_stem(name)}.png")
         methods[name] = {"D": "×", "NATR": "×", "learners": [row]}
         histories[name] = history

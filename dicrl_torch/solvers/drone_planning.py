@@ -10,7 +10,8 @@ with the solvers, below the runs: the drone task (:class:`dicrl_torch.runs.drone
 only picks the settings, the nominal dynamics and the cache, and calls
 :func:`drone_planner`.
 
-- :data:`PLANNER_DEFAULTS`: the planner's settings (a run's ``solver.planner`` overrides).
+- :class:`DronePlannerSettings`, :data:`PLANNER_DEFAULTS`: the planner's settings (a run's
+  ``solver.planner`` overrides them).
 - :func:`check_planner_settings`: refuses settings and cost bases the planner cannot use.
 - :func:`drone_grid_values`: per drone, the terminal values on a grid of the room.
 - :func:`drone_planner`: the :class:`~dicrl_torch.solvers.planning.CrossEntropyPlanner`.
@@ -18,13 +19,17 @@ only picks the settings, the nominal dynamics and the cache, and calls
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
+from dicrl_torch.checks import InvalidSetting, setting_number
 from dicrl_torch.envs.drones import ROOM_SIZE, in_own_door, nominal_step
+from dicrl_torch.features.continuous import ContinuousFeatureBasis
 from dicrl_torch.solvers.planning import (
     PLAN_SIZES,
     CrossEntropyPlanner,
@@ -32,53 +37,74 @@ from dicrl_torch.solvers.planning import (
     grid_values,
 )
 
-__all__ = ["PLANNER_DEFAULTS", "basis_dot", "basis_features", "check_planner_settings",
+__all__ = ["PLANNER_DEFAULTS", "DronePlannerSettings", "check_planner_settings",
            "drone_grid_values", "drone_planner"]
 
-PLANNER_DEFAULTS = {"horizon": 30, "knot": 5, "replan": 1, "samples": 256, "iterations": 4,
-                    "elites": 25, "margin": 0.1, "grid_step": 0.25}
-"""``eval_policy="plan"``'s settings (docs/drones.md, "Planning on the learned game"): 3 s
-planned in 6 held commands, re-planned every step, 4 rounds of 256 plans; learned cells
-grown by 0.1 m; the terminal value on a 0.25 m grid."""
+
+@dataclass(frozen=True)
+class DronePlannerSettings:
+    """``eval_policy="plan"``'s settings, checked on construction (docs/drones.md,
+    "Planning on the learned game"); the defaults: 3 s planned in 6 held commands,
+    re-planned every step, 4 rounds of 256 plans; learned cells grown by 0.1 m; the
+    terminal value on a 0.25 m grid.
+
+    Attributes:
+        horizon, knot, replan, samples, iterations, elites: the cross-entropy planner's
+            sizes (:func:`~dicrl_torch.solvers.planning.check_plan_sizes`).
+        margin: metres the learned cells (and the proximity) are grown by, in [0, 0.5).
+        grid_step: metres between the terminal value's grid centres, in (0, 1], with
+            ``margin + grid_step / 2`` below half a cell.
+
+    Raises:
+        InvalidSetting: a setting out of range, naming it.
+    """
+
+    horizon: int = 30
+    knot: int = 5
+    replan: int = 1
+    samples: int = 256
+    iterations: int = 4
+    elites: int = 25
+    margin: float = 0.1
+    grid_step: float = 0.25
+
+    def __post_init__(self) -> None:
+        check_plan_sizes(**{k: getattr(self, k) for k in PLAN_SIZES})
+        setting_number("margin", self.margin, low=0, high=0.5, high_open=True, example=0.1,
+                       why="metres the learned cells are grown by")
+        setting_number("grid_step", self.grid_step, low=0, high=1, low_open=True,
+                       example=0.25, why="metres between the grid value's centres")
+        if not self.margin + self.grid_step / 2 < 0.5:
+            # grid_values forbids a centre whose cell grown by both touches a learned one
+            raise InvalidSetting(
+                "grid_step", self.grid_step, f"a number in (0, 1] with {{margin}}="
+                f"{self.margin:g} + half of it below half a cell (0.5 m)", 0.25)
 
 
-def basis_features(basis, states: np.ndarray) -> np.ndarray:
-    """``[..., l]`` ``basis(states)`` of numpy states: the basis's fast numpy path where
-    it has one (``numpy_features``, equal bit for bit)."""
-    if callable(getattr(basis, "numpy_features", None)):
-        return basis.numpy_features(states)
-    return basis.compute(torch.as_tensor(states)).numpy()
-
-
-def basis_dot(basis, states: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """``[...]`` ``basis(states) @ weights``: the basis's fast ``dot`` where it has one."""
-    if callable(getattr(basis, "dot", None)):
-        return basis.dot(states, weights)
-    return basis_features(basis, states) @ weights
+PLANNER_DEFAULTS: dict[str, Any] = dataclasses.asdict(DronePlannerSettings())
+""":class:`DronePlannerSettings`' defaults as a dict (a run's ``solver.planner`` overrides
+them key by key)."""
 
 
 def check_planner_settings(cost_basis, settings: dict[str, Any]) -> None:
     """Refuse, before any training, a planner that could not run: ``settings`` (the
-    defaults updated by the run's) out of range, or a cost basis whose cells cannot be
-    grown by a margin."""
-    if not callable(getattr(cost_basis, "dilated", None)):
+    defaults updated by the run's) out of range (:class:`DronePlannerSettings`), or a
+    cost basis whose cells cannot be grown by a margin."""
+    if not (isinstance(cost_basis, ContinuousFeatureBasis) and cost_basis.dilatable):
         # A plan is refused when it enters a learned constraint: that needs features
         # that are 0 outside their region (cells), which can be grown by the margin.
         raise ValueError(
             f"eval_policy='plan' needs a cost basis of cells that can be grown by a "
-            f"margin (dilated(margin), e.g. CellOccupancyCostBasis); "
+            f"margin (dilatable, with dilated(margin), e.g. CellOccupancyCostBasis); "
             f"{type(cost_basis).__name__} has none: set solver.eval_policy=sac.")
-    check_plan_sizes(**{k: settings[k] for k in PLAN_SIZES})
-    if not settings["margin"] + settings["grid_step"] / 2 < 0.5:
-        # grid_values forbids a centre whose cell grown by both touches a learned one
-        raise ValueError(
-            f"planner margin {settings['margin']} + grid_step {settings['grid_step']} / 2 "
-            f"must stay below half a cell (0.5 m); lower solver.planner.grid_step.")
+    DronePlannerSettings(**settings)
 
 
-def drone_grid_values(reward_basis, cost_basis, eta: np.ndarray, cost_weights: np.ndarray,
-                      constraints: np.ndarray, *, n_agents: int, margin: float,
-                      grid_step: float, dynamics, gamma: float) -> list[np.ndarray]:
+def drone_grid_values(reward_basis: ContinuousFeatureBasis,
+                      cost_basis: ContinuousFeatureBasis, eta: np.ndarray,
+                      cost_weights: np.ndarray, constraints: np.ndarray, *, n_agents: int,
+                      margin: float, grid_step: float, dynamics, gamma: float
+                      ) -> list[np.ndarray]:
     """Per drone ``[G, G]`` :func:`~dicrl_torch.solvers.planning.grid_values` of the
     learned game ``(η [l_r + 1], ω_c [l_c])`` on the centres of a ``grid_step`` grid of
     the room: the drone alone, the cells within ``margin + grid_step / 2`` of a learned
@@ -116,10 +142,10 @@ def drone_grid_values(reward_basis, cost_basis, eta: np.ndarray, cost_weights: n
     return values
 
 
-def drone_planner(reward_basis, cost_basis, eta: np.ndarray, cost_weights: np.ndarray,
-                  constraints: np.ndarray, *, values: list[np.ndarray],
-                  settings: dict[str, Any], dynamics, n_agents: int, gamma: float,
-                  seeds: Sequence[int]) -> CrossEntropyPlanner:
+def drone_planner(reward_basis: ContinuousFeatureBasis, cost_basis: ContinuousFeatureBasis,
+                  eta: np.ndarray, cost_weights: np.ndarray, constraints: np.ndarray, *,
+                  values: list[np.ndarray], settings: dict[str, Any], dynamics,
+                  n_agents: int, gamma: float, seeds: Sequence[int]) -> CrossEntropyPlanner:
     """A cross-entropy planner in the nominal arena (``dynamics``:
     :func:`~dicrl_torch.envs.drones.nominal_step`) on the learned reward
     ``ω_r·φ_r + λ ω_c·φ_c``, never entering a learned cell or the proximity grown by
@@ -149,11 +175,13 @@ def drone_planner(reward_basis, cost_basis, eta: np.ndarray, cost_weights: np.nd
         return nominal_step(states, actions, active, dynamics=dynamics)
 
     def reward(states):
-        return (basis_features(reward_basis, states) @ wr
-                + lam * basis_dot(cost_basis, states, cost_weights))
+        # The bases' numpy paths (ContinuousFeatureBasis: generic, or a basis's faster
+        # one, equal bit for bit): thousands of plans' states per step.
+        return (reward_basis.numpy_features(states) @ wr
+                + lam * cost_basis.dot(states, cost_weights))
 
     def entered(states):
-        return basis_dot(grown, states, forbidden) > 0
+        return grown.dot(states, forbidden) > 0
 
     def terminal(states):
         cells = np.clip((states[..., :2] / step).astype(np.int64), 0, len(values[0]) - 1)

@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from dicrl_torch.checks import InvalidSetting, setting_int
+
 __all__ = ["PLAN_SIZES", "CrossEntropyPlanner", "check_plan_sizes", "grid_values"]
 
 FORBIDDEN_VALUE = -1e9
@@ -105,20 +107,26 @@ PLAN_SIZES: tuple[str, ...] = ("horizon", "knot", "replan", "samples", "iteratio
 
 def check_plan_sizes(*, horizon: int, knot: int, replan: int, samples: int, iterations: int,
                      elites: int) -> None:
-    """Raise ValueError unless :class:`CrossEntropyPlanner`'s sizes fit together: positive
+    """Refuse :class:`CrossEntropyPlanner`'s sizes unless they fit together: positive
     ints, whole held commands in the horizon, re-plans on a command's steps, elites among
-    the samples (also for configs checked before any planner is built)."""
-    for name, value in (("horizon", horizon), ("knot", knot), ("replan", replan),
-                        ("samples", samples), ("iterations", iterations), ("elites", elites)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be a positive int, got {value!r}.")
+    the samples (also for settings checked before any planner is built).
+
+    Raises:
+        InvalidSetting: naming the size at fault (and the one it must fit).
+    """
+    for name, value, example in (("horizon", horizon, 30), ("knot", knot, 5),
+                                 ("replan", replan, 1), ("samples", samples, 256),
+                                 ("iterations", iterations, 4), ("elites", elites, 25)):
+        setting_int(name, value, example=example)
     if horizon % knot:
-        raise ValueError(f"horizon={horizon} must be a multiple of knot={knot}.")
+        raise InvalidSetting("horizon", horizon, f"an int >= 1, a multiple of {{knot}}={knot} "
+                             f"(whole held commands)", knot * max(1, round(horizon / knot)))
     if knot % replan:
-        raise ValueError(f"replan={replan} must divide knot={knot} (re-plans fall on the "
-                         f"held action's steps).")
+        raise InvalidSetting("replan", replan, f"an int >= 1 dividing {{knot}}={knot} (re-plans "
+                             f"fall on the held command's steps)", knot)
     if elites > samples:
-        raise ValueError(f"elites={elites} exceeds samples={samples}.")
+        raise InvalidSetting("elites", elites, f"an int >= 1, at most {{samples}}={samples} (the "
+                             f"best plans refitted to)", max(1, samples // 10))
 
 
 class CrossEntropyPlanner:

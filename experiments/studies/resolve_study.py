@@ -112,7 +112,7 @@ def last_solve(run: Path, method: str, learner: int, settings: dict) -> None:
     if solver.demo_fraction > 0:
         solver.set_demonstrations(shard)
     t0 = time.perf_counter()
-    row = task.evaluate_learner(trainer, learner, progress=False)
+    row, _ = task.evaluate_learner(trainer, learner, progress=False)
     print(json.dumps({
         "method": method, "learner": learner + 1, "settings": settings, "SR": row["SR"],
         "CVR": row["CVR"], "SR_sampled": row["SR_sampled"], "kept": row["policy_timesteps"],

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from dicrl_torch.checks import check_positive
+from dicrl_torch.checks import check_positive, setting_int
 from dicrl_torch.envs.drones.arrays import is_torch
 from dicrl_torch.envs.drones.dynamics import DroneDynamics, joint_step
 from dicrl_torch.envs.drones.geometry import (
@@ -73,9 +73,7 @@ class DroneArena(CheckedParallelEnv):
                 f"constrained must be a bool (True: true game, False: nominal game), "
                 f"got {constrained!r}."
             )
-        if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) \
-                or max_steps < 1:
-            raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
+        setting_int("max_steps", max_steps, example=300, why="episode limit in steps")
         if dynamics is None:
             dynamics = DroneDynamics()
         if not isinstance(dynamics, DroneDynamics):

@@ -39,6 +39,7 @@ import numpy as np
 from gymnasium import spaces
 from mpe2.simple_spread.simple_spread import Scenario as SpreadScenario
 
+from dicrl_torch.checks import setting_int
 from dicrl_torch.envs.mpe.layout import (
     MAX_SPEED,
     SpreadLayout,
@@ -126,9 +127,7 @@ class ConstrainedSpread(CheckedParallelEnv):
         if not isinstance(constrained, bool | np.bool_):
             raise ValueError(f"constrained must be a bool (True: true game, False: nominal "
                              f"game), got {constrained!r}.")
-        if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) \
-                or max_steps < 1:
-            raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
+        setting_int("max_steps", max_steps, example=50, why="episode limit in steps")
         local_ratio = check_number("local_ratio", local_ratio)
         if local_ratio > 1:
             raise ValueError(f"local_ratio must lie in [0, 1], got {local_ratio!r}.")
