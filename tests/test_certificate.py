@@ -110,7 +110,8 @@ def test_the_paper_threshold_rule_stays_selectable(rule_runs):
 
 
 def test_the_drones_refuse_the_certificate():
-    from config_checks import ConfigError, check_config
+    from common import check_config
+    from config_checks import ConfigError
 
     cfg = compose_train("experiment=table2_quick", "algo.constraint_rule=certificate")
     with pytest.raises(ConfigError, match="constraint_rule=threshold"):

@@ -146,19 +146,26 @@ MODELS: dict[str, DemonstratorModel] = {
 # ----------------------------------------------------------------- masks
 def is_state_feature(features: FactoredFeatures) -> torch.Tensor:
     """``[l]`` bool: features whose value depends on the joint state only (per-expert
-    tables constant along the action axis; the joint part is state-only)."""
+    tables constant along the action axis; the joint part is state-only).
+
+    A pass over all ``N·S1·A1·l`` entries: callers that need it repeatedly for the same
+    features (a greedy, a classification) compute it once and pass it on
+    (``state_features=`` of :func:`constraint_masks`)."""
     local = features.local
     return (local == local[:, :, :1]).all(dim=(0, 1, 2))
 
 
 def constraint_masks(features: FactoredFeatures, selected: torch.Tensor,
-                     model: TabularGridModel) -> tuple[FactoredReward, torch.Tensor | None]:
+                     model: TabularGridModel, *, state_features: torch.Tensor | None = None
+                     ) -> tuple[FactoredReward, torch.Tensor | None]:
     """The hard masks of a constraint set.
 
     Args:
         features: cost features (non-negative), ``local [N, S1, A1, l]``.
         selected: ``[l]`` bool, the constraint set C.
         model: the tabular model (for the state shape).
+        state_features: ``is_state_feature(features)`` if already known (it is computed
+            otherwise).
 
     Returns:
         ``(mask, terminal)``: a :class:`FactoredReward` that is ``-inf`` on every pair
@@ -169,7 +176,6 @@ def constraint_masks(features: FactoredFeatures, selected: torch.Tensor,
     if selected.shape != (features.dim,) or selected.dtype != torch.bool:
         raise ValueError(f"selected must be a [{features.dim}] bool mask, got "
                          f"{tuple(selected.shape)} {selected.dtype}.")
-    N, S1 = model.n_experts, model.n_cells
     hit = (features.local[..., selected] > _POSITIVE).any(-1)  # [N, S1, A1]
     local = torch.zeros(hit.shape, dtype=torch.float64).masked_fill(hit, -math.inf)
     joint = joint_hit = None
@@ -179,30 +185,46 @@ def constraint_masks(features: FactoredFeatures, selected: torch.Tensor,
             joint_hit = (features.joint[:, cols] > _POSITIVE).any(-1)  # [S]
             joint = torch.zeros(joint_hit.shape, dtype=torch.float64).masked_fill(
                 joint_hit, -math.inf)
-    state_sel = selected & is_state_feature(features)
+    if state_features is None:
+        state_features = is_state_feature(features)
+    state_sel = selected & state_features
     if not state_sel.any():
         return FactoredReward(local=local, joint=joint), None
-    bad = torch.zeros(model.state_shape, dtype=torch.bool)
     cell_bad = (features.local[:, :, 0][..., state_sel] > _POSITIVE).any(-1)  # [N, S1]
-    for i in range(N):
-        shape = [1] * N
-        shape[i] = S1
-        bad |= cell_bad[i].reshape(shape)
-    if joint_hit is not None:
-        bad |= joint_hit.reshape(model.state_shape)
+    bad = cells_or_joint(cell_bad, joint_hit, model)
     terminal = torch.zeros(model.state_shape, dtype=torch.float64).masked_fill(bad, -math.inf)
     return FactoredReward(local=local, joint=joint), terminal
 
 
+def cells_or_joint(cell: torch.Tensor, joint: torch.Tensor | None,
+                   model: TabularGridModel) -> torch.Tensor:
+    """``[S1]*N`` bool: the joint states where some expert ``i`` is on a cell with
+    ``cell[i]`` (``[N, S1]`` bool) or where ``joint`` (``[S]`` bool, or None) holds."""
+    N, S1 = model.n_experts, model.n_cells
+    bad = cell[0].reshape([S1] + [1] * (N - 1))
+    for i in range(1, N):
+        shape = [1] * N
+        shape[i] = S1
+        bad = bad | cell[i].reshape(shape)
+    bad = bad.expand(model.state_shape)
+    if joint is not None:
+        bad = bad | joint.reshape(model.state_shape)
+    return bad.contiguous()
+
+
 def demonstrated_features(features: FactoredFeatures, demos: Demonstrations,
-                          gamma: float) -> torch.Tensor:
+                          gamma: float, *, state_features: torch.Tensor | None = None
+                          ) -> torch.Tensor:
     """``[l]`` bool: features some demonstration accrues at a ``(s_t, a_t)``, or — for
-    state features — at its final state ``s_T``."""
+    state features — at its final state ``s_T`` (``state_features``:
+    ``is_state_feature(features)`` if already known)."""
     sums = discounted_feature_sums(features, demos, gamma)  # [m, l]
     seen = (sums > _POSITIVE).any(0)
     last = torch.tensor(demos.states[:, -1])  # [m, N]
     phi_T = features.at(last, torch.zeros_like(last), demos.n_cells)  # [m, l]
-    return seen | ((phi_T > _POSITIVE).any(0) & is_state_feature(features))
+    if state_features is None:
+        state_features = is_state_feature(features)
+    return seen | ((phi_T > _POSITIVE).any(0) & state_features)
 
 
 def cost_features_of(cost_basis, model: TabularGridModel
@@ -533,13 +555,16 @@ class GreedyConstraintInference(GreedyLoop):
         self.max_constraints = features.dim if max_constraints is None else max_constraints
         self.progress = progress
         self.label = f"{self.kind.name}-greedy"
-        self.candidates = ~demonstrated_features(features, demonstrations, m.gamma)  # [l]
+        self.state_features = is_state_feature(features)  # [l], once: every solve masks
+        self.candidates = ~demonstrated_features(features, demonstrations, m.gamma,
+                                                 state_features=self.state_features)  # [l]
         self.solves = 0
 
     # ------------------------------------------------------------------ pieces
     def solve(self, selected: torch.Tensor) -> tuple[SoftBellmanSolution, torch.Tensor | None]:
         """The model with constraint set ``selected`` ``[l]`` bool, with occupancies."""
-        mask, terminal = constraint_masks(self.features, selected, self.solver.model)
+        mask, terminal = constraint_masks(self.features, selected, self.solver.model,
+                                          state_features=self.state_features)
         self.solves += 1
         sol = self.solver.solve(self.reward + mask, terminal_value=terminal,
                                 backup=self.kind.backup)

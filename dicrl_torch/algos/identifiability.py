@@ -18,17 +18,8 @@ falls in one class:
   constraint set consistent with ``D`` must contain it.
 - **undetermined**: the rest of ``U``: ``D`` cannot tell whether it is a constraint.
 
-**The probability of accruing a feature** (:func:`accrual_probability`) is not its
-expected (discounted) count: it is ``P(∃ t < T: φ_j(s_t, a_t) > 0, or φ_j(s_T) > 0 for a
-state feature)`` under the policy and the nominal dynamics, computed exactly by a
-forward pass on the chain in which the mass that accrues ``φ_j`` is removed at the step
-it does so (the removed mass, summed, is the probability). The chain is kept sparse:
-only joint states that still carry mass are visited, and the policy is read there with
-:meth:`~dicrl_torch.solvers.factored.SoftBellmanSolution.policy_at` — the very policy
-:func:`~dicrl_torch.solvers.experts.sample_trajectories` samples from (hard max with
-uniform ties at temperature 0, soft-optimal above). With optimal experts from a few start
-states the support stays small, so a candidate costs about one backward solve. Joint
-features (the collision) are removed on the joint state like any other.
+**The probability of accruing a feature** is computed exactly by
+:func:`~dicrl_torch.algos.accrual.accrual_probability` (its module says how).
 
 **The experts' model under a constraint set.** The experts of
 :func:`~dicrl_torch.solvers.experts.expert_solution` mask the true CMG's constraints;
@@ -54,21 +45,34 @@ cells, or the product of the varied-start sets). Every demonstration must start 
 
 **Cost.** One backward solve per classified undemonstrated feature plus the sparse
 forward pass (``experiments/studies/identifiability.py`` prints the time per candidate).
+What every candidate shares is computed once per classification: where each feature is
+positive and which are state features, the masks of ``U \\ {j}`` from counts over ``U``,
+the model's move tables; the hard solves of an eager solver run in wider chunks of cells
+(:func:`candidate_solver`: the same values, fewer kernel calls).
 """
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
-import numpy as np
 import torch
 
+from dicrl_torch.algos.accrual import (
+    CHUNK_STATES,
+    AllButOne,
+    Chain,
+    Hits,
+    Positive,
+    accrual_probability,
+    as_mask,
+    candidate_solver,
+    joint_initial_distribution,
+    killed_forward,
+)
 from dicrl_torch.algos.greedy import (
-    constraint_masks,
     cost_features_of,
     demonstrated_features,
     is_state_feature,
@@ -76,7 +80,7 @@ from dicrl_torch.algos.greedy import (
 from dicrl_torch.demos.storage import Demonstrations
 from dicrl_torch.envs.grid import TabularGridModel, decode_joint, encode_joint
 from dicrl_torch.features.bases import FactoredFeatures, FactoredReward, FeatureBasis
-from dicrl_torch.solvers.factored import FactoredSoftBellman, SoftBellmanSolution
+from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 __all__ = [
     "Identifiability",
@@ -93,9 +97,6 @@ MIN_PROBABILITY = 0.01
 # reward, and a threshold ten times below MIN_PROBABILITY (docs/design.md §6).
 CERTIFICATE_TEMPERATURE = 0.0
 CERTIFICATE_MIN_PROBABILITY = 1e-3
-# Joint states per policy query of the forward pass (bounds memory at 3 experts:
-# a query holds [B, (1 + A1)^N] values).
-_CHUNK_STATES = 4096
 
 
 # ------------------------------------------------------------------------ result
@@ -160,14 +161,14 @@ class Identifiability:
 
     def names_of(self, mask: torch.Tensor) -> list[str]:
         """The labels of the features in ``mask`` ``[l]`` bool."""
-        return [self.names[j] for j in torch.nonzero(_as_mask(mask, len(self.names),
+        return [self.names[j] for j in torch.nonzero(as_mask(mask, len(self.names),
                                                               "mask")).flatten().tolist()]
 
     def restrict(self, mask) -> Identifiability:
         """The classification of the features in ``mask`` ``[l]`` bool only (e.g. the
         true constraints, ``cost_basis.true_constraints()``); probabilities outside
         become NaN."""
-        mask = _as_mask(mask, len(self.names), "mask")
+        mask = as_mask(mask, len(self.names), "mask")
         return replace(self, scope=self.scope & mask, demonstrated=self.demonstrated & mask,
                        required=self.required & mask, undetermined=self.undetermined & mask,
                        infeasible=self.infeasible & mask,
@@ -211,7 +212,7 @@ def fnr_required(learned, true, result: Identifiability) -> float | None:
     if true is None:
         return None
     l = len(result.names)
-    learned, true = _as_mask(learned, l, "learned"), _as_mask(true, l, "true")
+    learned, true = as_mask(learned, l, "learned"), as_mask(true, l, "true")
     outside = true & ~result.scope
     if outside.any():
         raise ValueError(f"The classification does not cover the true constraints "
@@ -220,186 +221,6 @@ def fnr_required(learned, true, result: Identifiability) -> float | None:
     pinned = result.required & true
     n = int(pinned.sum())
     return float((pinned & ~learned).sum()) / n if n else None
-
-
-def _as_mask(mask, l: int, name: str) -> torch.Tensor:
-    if isinstance(mask, np.ndarray):
-        mask = torch.as_tensor(np.array(mask))
-    if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != (l,):
-        got = (f"{tuple(mask.shape)} {mask.dtype}" if hasattr(mask, "shape")
-               else type(mask).__name__)
-        raise ValueError(f"{name} must be a [{l}] bool mask (tensor or array), got {got}.")
-    return mask.cpu()
-
-
-# ------------------------------------------------------------------------ P0
-def joint_initial_distribution(model: TabularGridModel, p0=None) -> torch.Tensor:
-    """P0 as a checked joint distribution ``[S1]*N`` float64.
-
-    Args:
-        model: the tabular model.
-        p0: None (the model's own P0: a point mass on the start cells with fixed starts,
-            the product of uniform start sets otherwise), a joint
-            distribution ``[S1]*N``, or one start distribution per expert ``[N, S1]``
-            (independent starts: their product).
-
-    Raises:
-        ValueError: another shape, negative or non-finite entries, or rows that do not
-            sum to 1.
-    """
-    if p0 is None:
-        return model.initial_distribution()
-    N, S1 = model.n_experts, model.n_cells
-    p = torch.as_tensor(p0, dtype=torch.float64).cpu()
-    if not torch.isfinite(p).all() or (p < 0).any():
-        raise ValueError("initial_distribution must hold finite non-negative probabilities.")
-    if tuple(p.shape) == model.state_shape:
-        joint = p
-    elif tuple(p.shape) == (N, S1):
-        joint = p[0]
-        for i in range(1, N):
-            joint = joint.unsqueeze(-1) * p[i]
-        bad = [i for i in range(N) if abs(float(p[i].sum()) - 1.0) > 1e-9]
-        if bad:
-            raise ValueError(f"initial_distribution [N, S1]: the start distributions of "
-                             f"experts {bad} do not sum to 1; normalise each row.")
-    else:
-        raise ValueError(f"initial_distribution must be a joint distribution of shape "
-                         f"{model.state_shape} or one per expert of shape {(N, S1)}, got "
-                         f"{tuple(p.shape)}.")
-    if abs(float(joint.sum()) - 1.0) > 1e-9:
-        raise ValueError(f"initial_distribution sums to {float(joint.sum()):.6g}, not 1; "
-                         f"normalise it.")
-    return joint
-
-
-# ------------------------------------------------------------------------ probability
-class _Hits:
-    """Where a set of features is positive: per expert ``[N, S1, A1]``, on joint states
-    ``[S]`` (joint part), and on final states ``[S]`` (its state features); and what
-    counts at the last decision ``t = T-1`` (``last_local``, ``last_joint``).
-
-    Without ``last_move`` the last move counts for nothing: neither the action taken at
-    ``t = T-1`` nor the state ``s_T`` it leads to accrues (the state ``s_{T-1}``, reached by
-    a scored move, still does)."""
-
-    def __init__(self, features: FactoredFeatures, target: torch.Tensor,
-                 model: TabularGridModel, device: torch.device,
-                 last_move: bool = True) -> None:
-        N, S1, A1 = model.n_experts, model.n_cells, model.n_actions
-        self.local = (features.local[..., target] > 0).any(-1).to(device)  # [N, S1, A1]
-        self.joint = None
-        final = torch.zeros(model.state_shape, dtype=torch.bool)
-        state = target & is_state_feature(features)
-        cell = (features.local[:, :, 0][..., state] > 0).any(-1)  # [N, S1]
-        for i in range(N):
-            shape = [1] * N
-            shape[i] = S1
-            final |= cell[i].reshape(shape)
-        final = final.reshape(-1)
-        joint_state = None
-        if features.joint is not None:
-            cols = target[features.joint_columns]
-            if cols.any():
-                self.joint = (features.joint[:, cols] > 0).any(-1).to(device)  # [S]
-            cols = state[features.joint_columns]
-            if cols.any():
-                joint_state = (features.joint[:, cols] > 0).any(-1)
-                final |= joint_state
-        if last_move:
-            self.final = final.to(device)
-            self.last_local, self.last_joint = self.local, self.joint
-        else:
-            self.final = torch.zeros_like(final).to(device)
-            self.last_local = cell.unsqueeze(-1).expand(N, S1, A1).to(device)
-            self.last_joint = None if joint_state is None else joint_state.to(device)
-
-
-def accrual_probability(solution: SoftBellmanSolution, features: FactoredFeatures | FeatureBasis,
-                        target, initial_distribution=None, last_move: bool = True) -> float:
-    """``P(a trajectory accrues some feature of target)`` under the solution's policy.
-
-    A trajectory accrues ``φ_j`` when ``φ_j(s_t, a_t) > 0`` at some ``t < T`` or, for a
-    state feature, ``φ_j(s_T) > 0``. Exact: the forward pass of the chain that drops
-    the mass accruing ``target`` at the step it does so (module docstring), with the
-    policy of ``solution.policy_at`` and the model's nominal dynamics.
-
-    Args:
-        solution: a solve of the model (any temperature, with or without forward pass).
-        features: the cost features (or their basis).
-        target: ``[l]`` bool, the features whose first accrual ends a trajectory's
-            survival, or an int (one feature).
-        initial_distribution: P0 (see :func:`joint_initial_distribution`); default
-            the model's.
-        last_move: whether the last move accrues: the action at ``t = T-1`` and a state
-            feature positive at ``s_T`` (the true CMG's semantics). False: neither (the
-            certificate's: optimal experts are indifferent among safe last moves).
-    """
-    features = features() if isinstance(features, FeatureBasis) else features
-    if isinstance(target, int):
-        j = target
-        target = torch.zeros(features.dim, dtype=torch.bool)
-        target[j] = True
-    target = _as_mask(target, features.dim, "target")
-    solver = solution.solver
-    model = solver.model
-    hits = _Hits(features, target, model, solver.device, last_move)
-    d = joint_initial_distribution(model, initial_distribution).reshape(-1).to(solver.device)
-    return _killed_forward(solution, hits, d)
-
-
-def _killed_forward(solution: SoftBellmanSolution, hits: _Hits, d: torch.Tensor) -> float:
-    model = solution.solver.model
-    N, S1, A1, T, p = (model.n_experts, model.n_cells, model.n_actions, model.horizon,
-                       model.p_success)
-    device = d.device
-    nxt = model.next_cell.to(device)  # [S1, A1]
-    powers = [S1 ** (N - 1 - i) for i in range(N)]
-    # Move/stay patterns of the N experts with their probabilities.
-    patterns = [(m, p ** sum(m) * (1.0 - p) ** (N - sum(m)))
-                for m in itertools.product((False, True), repeat=N)]
-    patterns = [(m, w) for m, w in patterns if w > 0.0]
-    removed = torch.zeros((), dtype=torch.float64, device=device)
-
-    def axis(x: torch.Tensor, i: int) -> torch.Tensor:  # [B, A1] -> expert i's action axis
-        shape = [x.shape[0]] + [1] * N
-        shape[1 + i] = A1
-        return x.reshape(shape)
-
-    for t in range(T):
-        support = torch.nonzero(d > 0).flatten()
-        if support.numel() == 0:  # every trajectory has accrued it
-            return float(removed)
-        d_next = torch.zeros_like(d)
-        for flat in support.split(_CHUNK_STATES):
-            B = flat.shape[0]
-            cells = decode_joint(flat, S1, N)  # [B, N]
-            mass = d[flat]
-            pi = solution.policy_at(t, cells).to(device, torch.float64)  # [B, A1^N]
-            rho = (mass.unsqueeze(1) * pi).reshape([B] + [A1] * N)
-            local, joint = (hits.last_local, hits.last_joint) if t == T - 1 else \
-                (hits.local, hits.joint)
-            acc = torch.zeros([B] + [1] * N, dtype=torch.bool, device=device)
-            for i in range(N):
-                acc = acc | axis(local[i, cells[:, i]], i)
-            if joint is not None:
-                acc = acc | joint[flat].reshape([B] + [1] * N)
-            acc = acc.expand_as(rho)
-            removed += rho[acc].sum()
-            rho = rho.masked_fill(acc, 0.0)
-            for moves, w in patterns:
-                stay_axes = tuple(1 + i for i in range(N) if not moves[i])
-                r = rho.sum(stay_axes, keepdim=True) if stay_axes else rho
-                target = torch.zeros([B] + [1] * N, dtype=torch.int64, device=device)
-                for i in range(N):
-                    c = axis(nxt[cells[:, i]], i) if moves[i] else \
-                        cells[:, i].reshape([B] + [1] * N)
-                    target = target + c * powers[i]
-                target = target.expand_as(r)
-                d_next.index_add_(0, target.reshape(-1), (w * r).reshape(-1))
-        d = d_next
-    removed += d[hits.final].sum()
-    return float(removed)
 
 
 # ------------------------------------------------------------------------ classification
@@ -460,13 +281,15 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
     p0 = joint_initial_distribution(model, initial_distribution)
     _check_starts(shards, p0, model)
     scope = (torch.ones(features.dim, dtype=torch.bool) if only is None
-             else _as_mask(only, features.dim, "only"))
+             else as_mask(only, features.dim, "only"))
 
     t0 = time.perf_counter()
+    pos = Positive(features)  # per-feature facts, once for every candidate
     demonstrated = torch.zeros(features.dim, dtype=torch.bool)
     for demos in shards:
-        demonstrated |= demonstrated_features(features, demos, model.gamma)
-    demonstrated |= _p0_features(features, p0, model)
+        demonstrated |= demonstrated_features(features, demos, model.gamma,
+                                              state_features=pos.state)
+    demonstrated |= _p0_features(features, p0, model, pos.state)
     unseen = ~demonstrated  # U
     probability = torch.full((features.dim,), math.nan, dtype=torch.float64)
     infeasible = torch.zeros(features.dim, dtype=torch.bool)
@@ -477,20 +300,21 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
         steps = tqdm(candidates, desc="identifiability", leave=False)
     support = p0 > 0
     d0 = p0.reshape(-1).to(solver.device)
+    masks = AllButOne(features, unseen, pos, model)
+    chain = Chain(model, solver.device)
+    solve = (candidate_solver(solver) if temperature == 0.0 else solver).solve
     for j in steps:
-        others = unseen.clone()
-        others[j] = False
-        mask, terminal = constraint_masks(features, others, model)
-        sol = solver.solve(reward + mask, temperature=temperature, forward=False,
-                           terminal_value=terminal)
+        mask, terminal = masks(j)  # U \ {j}
+        sol = solve(reward + mask, temperature=temperature, forward=False,
+                    terminal_value=terminal)
         v0 = sol.V[0].cpu()[support]
         if not torch.isfinite(v0).all():
             infeasible[j] = True
             continue
         target = torch.zeros(features.dim, dtype=torch.bool)
         target[j] = True
-        probability[j] = _killed_forward(
-            sol, _Hits(features, target, model, solver.device, last_move), d0)
+        probability[j] = killed_forward(
+            sol, Hits(features, target, model, solver.device, last_move, pos), d0, chain)
     seconds = time.perf_counter() - t0
     required = unseen & scope & (probability >= min_probability)
     return Identifiability(
@@ -625,13 +449,14 @@ def _check_starts(shards: list[Demonstrations], p0: torch.Tensor,
                 f"pass initial_distribution= the P0 the demonstrations were sampled from.")
 
 
-def _p0_features(features: FactoredFeatures, p0: torch.Tensor,
-                 model: TabularGridModel) -> torch.Tensor:
-    """``[l]`` bool: state features positive on some state where P0 has mass."""
+def _p0_features(features: FactoredFeatures, p0: torch.Tensor, model: TabularGridModel,
+                 state_features: torch.Tensor | None = None) -> torch.Tensor:
+    """``[l]`` bool: state features positive on some state where P0 has mass
+    (``state_features``: ``is_state_feature(features)`` if already known)."""
     flat = torch.nonzero(p0.reshape(-1) > 0).flatten()
     cells = decode_joint(flat, model.n_cells, model.n_experts)  # [K, N]
     seen = torch.zeros(features.dim, dtype=torch.bool)
-    for chunk in cells.split(_CHUNK_STATES * 16):
+    for chunk in cells.split(CHUNK_STATES * 16):
         phi = features.at(chunk, torch.zeros_like(chunk), model.n_cells)  # [K, l]
         seen |= (phi > 0).any(0)
-    return seen & is_state_feature(features)
+    return seen & (is_state_feature(features) if state_features is None else state_features)

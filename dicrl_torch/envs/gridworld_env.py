@@ -19,10 +19,15 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
+from matplotlib import rcParams
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection, PatchCollection
+from matplotlib.figure import Figure
+from matplotlib.font_manager import FontProperties
 from matplotlib.patches import Rectangle
 
 from dicrl_torch.envs.grid import ACTION_NAMES, N_ACTIONS, GridLayout
-from dicrl_torch.envs.parallel import CheckedParallelEnv, agg_axes, axes_image
+from dicrl_torch.envs.parallel import CheckedParallelEnv, figure_image
 
 DEFAULT_REWARD_WEIGHTS: tuple[float, float] = (1.0, 2.0)
 
@@ -255,6 +260,11 @@ def render_grid(
     mark the expert's other start cells). Uses a private Agg canvas, never pyplot's
     global state, so it is safe in headless and threaded code.
 
+    The picture is laid out by hand (:func:`_grid_frame`), not by ``tight_layout``; the
+    cells' fills and the grid lines are one artist each and the cells' numbers plain
+    texts, not ticks: a third of the time of the generic layout of many patches and
+    ticks (half with a heat map, whose colour bar is the rest).
+
     Args:
         layout: the grid to draw.
         cells: current cell of each expert, drawn as filled numbered markers; an entry
@@ -270,33 +280,56 @@ def render_grid(
         The RGB image.
     """
     G, S1 = layout.size, layout.n_cells
-    ax = agg_axes((4.2 if heat is not None else 3.6, 4.0))
     if heat is not None:
         heat = np.asarray(heat, dtype=np.float64)
         if heat.shape != (S1,):
             raise ValueError(
                 f"heat must have one value per cell, shape [{S1}], got {list(heat.shape)}."
             )
-        im = ax.imshow(heat.reshape(G, G), cmap="viridis", origin="upper",
-                       extent=(-0.5, G - 0.5, G - 0.5, -0.5), interpolation="nearest")
-        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
     colours = {} if cell_colours is None else {int(c): v for c, v in cell_colours.items()}
     bad = [c for c in colours if not 0 <= c < S1]
     if bad:
         raise ValueError(f"cell_colours {bad} lie outside 0..{S1 - 1}.")
-    for c, colour in colours.items():
-        # over a heat map (zorder 0), under the grid lines (1.5) and everything else
-        x, y = layout.xy(c)
-        ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, color=colour, lw=0, zorder=1))
-    for x, y in layout.obstacles:
-        # Over a heat map obstacles are hatched, not filled, so their values stay visible.
-        if heat is not None:
-            style = {"fill": False, "hatch": "///", "ec": "0.15", "lw": 0}
-        elif layout.cell((x, y)) in colours:
-            continue  # filled in its given colour above
-        else:
-            style = {"color": "0.2"}
-        ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, zorder=2, **style))
+    cc = None if constraint_cells is None else [int(c) for c in constraint_cells]
+    if cc is not None:
+        bad = [c for c in cc if not 0 <= c < S1]
+        if bad:
+            raise ValueError(f"constraint_cells {bad} lie outside 0..{S1 - 1}.")
+    fig = Figure(figsize=(4.2 if heat is not None else 3.6, 4.0), dpi=80)
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    ax.set_xlim(-0.5, G - 0.5)
+    ax.set_ylim(G - 0.5, -0.5)  # row 0 at the top, as in docs/design.md §3
+    # No axis machinery: the cells' numbers are plain texts (_grid_frame), the grid lines
+    # one collection.
+    ax.xaxis.set_visible(False)
+    ax.yaxis.set_visible(False)
+    cax = None
+    if heat is not None:
+        im = ax.imshow(heat.reshape(G, G), cmap="viridis", origin="upper",
+                       extent=(-0.5, G - 0.5, G - 0.5, -0.5), interpolation="nearest")
+        cax = fig.add_axes((0.0, 0.0, 0.05, 1.0))
+        fig.colorbar(im, cax=cax)
+    # Cells in a given colour: over a heat map (zorder 0), under the grid lines (1.5) and
+    # everything else.
+    if colours:
+        ax.add_collection(PatchCollection(
+            [Rectangle((c % G - 0.5, c // G - 0.5), 1, 1) for c in colours],
+            facecolors=list(colours.values()), edgecolors="none", linewidths=0, zorder=1))
+    # Over a heat map obstacles are hatched, not filled, so their values stay visible;
+    # one given a colour is filled in it above.
+    walls = [(x, y) for x, y in layout.obstacles
+             if heat is not None or layout.cell((x, y)) not in colours]
+    if walls:
+        style = ({"facecolors": "none", "edgecolors": "0.15", "hatch": "///", "linewidths": 0}
+                 if heat is not None else {"facecolors": "0.2", "edgecolors": "0.2",
+                                           "linewidths": rcParams["patch.linewidth"]})
+        ax.add_collection(PatchCollection(
+            [Rectangle((x - 0.5, y - 0.5), 1, 1) for x, y in walls], zorder=2, **style))
+    lines = np.arange(G + 1) - 0.5
+    ax.add_collection(LineCollection(
+        [[(k, -0.5), (k, G - 0.5)] for k in lines] + [[(-0.5, k), (G - 0.5, k)] for k in lines],
+        colors="0.6", linewidths=0.6, zorder=1.5))  # the grid, where minor ticks drew it
     for i, ((sx, sy), (gx, gy)) in enumerate(zip(layout.starts, layout.goals, strict=True)):
         c = EXPERT_COLOURS[i % len(EXPERT_COLOURS)]
         if layout.start_sets is not None and len(layout.start_sets[i]) > 1:
@@ -305,14 +338,9 @@ def render_grid(
             ax.plot(xs, ys, ".", ms=5, color=c, alpha=0.6, zorder=3)
         ax.plot(sx, sy, "o", ms=14, mfc="none", mec=c, mew=2, zorder=3)
         ax.plot(gx, gy, "*", ms=15, color=c, zorder=3)
-    if constraint_cells is not None:
-        cc = [int(c) for c in constraint_cells]
-        bad = [c for c in cc if not 0 <= c < S1]
-        if bad:
-            raise ValueError(f"constraint_cells {bad} lie outside 0..{S1 - 1}.")
-        if cc:
-            ax.plot([c % G for c in cc], [c // G for c in cc], "x", ms=11, mew=2.5,
-                    color="red", zorder=4)
+    if cc:
+        ax.plot([c % G for c in cc], [c // G for c in cc], "x", ms=11, mew=2.5,
+                color="red", zorder=4)
     if cells is not None:
         for i, c in enumerate(cells):
             if c is None:
@@ -321,12 +349,73 @@ def render_grid(
             ax.plot(x, y, "o", ms=10, color=EXPERT_COLOURS[i % len(EXPERT_COLOURS)], mec="k",
                     zorder=5)
             ax.text(x, y, str(i), ha="center", va="center", fontsize=7, color="w", zorder=6)
-    ax.set_xlim(-0.5, G - 0.5)
-    ax.set_ylim(G - 0.5, -0.5)  # row 0 at the top, as in docs/design.md §3
-    ax.set_xticks(np.arange(G))
-    ax.set_yticks(np.arange(G))
-    ax.set_xticks(np.arange(G + 1) - 0.5, minor=True)
-    ax.set_yticks(np.arange(G + 1) - 0.5, minor=True)
-    ax.grid(which="minor", color="0.6", lw=0.6)
-    ax.tick_params(which="both", length=0, labelsize=7)
-    return axes_image(ax, title)
+    _grid_frame(ax, cax, G, title)
+    return figure_image(fig)
+
+
+# Font sizes (points) of render_grid's title and tick labels, and the spacing matplotlib
+# gives them: tight_layout's padding (1.08 font sizes of 10 pt) around the picture, the
+# title's pad above the axes, the tick labels' pad beside them.
+_TITLE_PT, _TICK_PT = 8, 7
+_PAD_PT, _TITLE_PAD_PT, _TICK_PAD_PT = 10.8, 6.0, 3.5
+# The colour bar as fig.colorbar(ax=...) placed it: 0.04 of the grid's side away, 1/20
+# of it wide.
+_CBAR_GAP, _CBAR_WIDTH = 0.04, 0.05
+
+
+def _grid_frame(ax, cax, G: int, title: str) -> None:
+    """Place render_grid's square axes, its colour bar ``cax`` (or None) and its title
+    as ``tight_layout`` and ``set_title`` would: the grid as large as the figure allows
+    after the padding, the tick labels, the colour bar and its labels, and the title
+    above it; centred, the colour bar beside the grid. Measures only the title, the
+    labels of the colour bar and one tick label per width, where ``tight_layout`` lays
+    out every artist of the figure twice."""
+    fig = ax.figure
+    renderer = fig.canvas.get_renderer()
+    W, H = fig.bbox.width, fig.bbox.height  # pixels
+    pt = fig.dpi / 72.0
+    pad, tick_pad = _PAD_PT * pt, _TICK_PAD_PT * pt
+    font = FontProperties(size=_TICK_PT)
+    widths = {}
+    for k in range(G):
+        n = len(str(k))
+        if n not in widths:  # digits are equally wide: one label per length
+            widths[n] = renderer.get_text_width_height_descent(str(k), font, ismath=False)[0]
+    label_w = max(widths.values())
+    label_h = renderer.get_text_width_height_descent("0123456789", font, ismath=False)[1]
+    left, bottom = pad + label_w + tick_pad, pad + label_h + tick_pad
+    text = None
+    top = pad
+    if title:
+        text = fig.text(0.5, 0.0, title, ha="center", va="baseline", fontsize=_TITLE_PT)
+        top += text.get_window_extent(renderer).y1 + _TITLE_PAD_PT * pt
+
+    def place(right: float) -> tuple[float, float, float]:
+        """The grid's square ``(x0, y0, side)`` in pixels, and the colour bar beside it,
+        with ``right`` pixels kept right of everything (of the colour bar if any)."""
+        share = 1.0 + (_CBAR_GAP + _CBAR_WIDTH if cax is not None else 0.0)
+        room_w, room_h = (W - left - right) / share, H - bottom - top
+        side = max(1.0, min(room_w, room_h))
+        x0 = left + (room_w - side) * (0.5 if cax is None else 1.0)
+        y0 = bottom + (room_h - side) / 2
+        ax.set_position((x0 / W, y0 / H, side / W, side / H))
+        if cax is not None:
+            cax.set_position(((x0 + side * (1.0 + _CBAR_GAP)) / W, y0 / H,
+                              side * _CBAR_WIDTH / W, side / H))
+        return x0, y0, side
+
+    x0, y0, side = place(pad)
+    if cax is not None:  # room for its ticks and labels, as many as it has at this height
+        labels = [label.get_window_extent(renderer).width
+                  for label in cax.yaxis.get_ticklabels(which="major") if label.get_text()]
+        x0, y0, side = place(pad + max(labels, default=0.0) + pt * (
+            rcParams["ytick.major.size"] + rcParams["ytick.major.pad"]))
+    if text is not None:
+        text.set_position(((x0 + side / 2) / W, (y0 + side + _TITLE_PAD_PT * pt) / H))
+    # The cells' numbers where the axes' tick labels were: below and left of the grid.
+    pitch = side / G
+    for k in range(G):
+        fig.text((x0 + (k + 0.5) * pitch) / W, (y0 - tick_pad) / H, str(k), ha="center",
+                 va="top", fontsize=_TICK_PT)
+        fig.text((x0 - tick_pad) / W, (y0 + side - (k + 0.5) * pitch) / H, str(k),
+                 ha="right", va="center_baseline", fontsize=_TICK_PT)

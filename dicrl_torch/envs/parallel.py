@@ -148,5 +148,12 @@ def axes_image(ax: Axes, title: str) -> np.ndarray:
         ax.set_title(title, fontsize=8)
     fig = ax.figure
     fig.tight_layout()
+    return figure_image(fig)
+
+
+def figure_image(fig: Figure) -> np.ndarray:
+    """A figure on its own Agg canvas (:func:`agg_axes`), drawn, as an ``H x W x 3``
+    uint8 image (for pictures laid out by hand, without :func:`axes_image`'s tight
+    layout)."""
     fig.canvas.draw()
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
