@@ -486,8 +486,8 @@ def cost_weight_curves(histories: Mapping[str, Sequence[Mapping]], *,
             panels.append((label, x, w[:, v]))  # ω_c(0) is not in the history
     if not panels:
         raise ValueError("cost_weight_curves needs a history whose entries hold "
-                         "'cost_weights' (written by DICRL.outer_step since 2026-12-03); "
-                         "rerun the experiment.")
+                         "'cost_weights' (DICRL.outer_step writes them); rerun the "
+                         "experiment.")
     width = panels[0][2].shape[1]
     true = np.zeros(width, bool) if true is None else np.asarray(true, dtype=bool)
     if true.shape != (width,):

@@ -4,11 +4,11 @@ the recorder for any PettingZoo ParallelEnv, on a tiny fake env defined here."""
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
 from gymnasium import spaces
+from npz_files import assert_file_refused, assert_not_an_archive
 from pettingzoo import ParallelEnv
 
 from dicrl_torch.demos import Trajectories, partition_demonstrations
@@ -225,10 +225,7 @@ def test_malformed_files_are_refused_naming_file_and_field(tmp_path, case):
     field, mutate = BAD_FILES[case]
     f = _fields()
     mutate(f)
-    path = tmp_path / f"bad_{case}.npz"
-    np.savez(path, **f)
-    with pytest.raises(ValueError, match=re.escape(path.name) + ".*" + re.escape(field)):
-        load_continuous_demonstrations(path)
+    assert_file_refused(load_continuous_demonstrations, tmp_path / f"bad_{case}.npz", f, field)
 
 
 def test_nan_in_padding_loads(tmp_path):
@@ -241,10 +238,7 @@ def test_nan_in_padding_loads(tmp_path):
 
 
 def test_not_an_archive(tmp_path):
-    path = tmp_path / "junk.npz"
-    Path(path).write_bytes(b"not a zip file at all")
-    with pytest.raises(ValueError, match="junk.npz.*(not an .npz|corrupt)"):
-        load_continuous_demonstrations(path)
+    assert_not_an_archive(load_continuous_demonstrations, tmp_path)
 
 
 def test_agent_lengths_mask_the_actions_of_agents_that_left(tmp_path):

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from npz_files import rejects
 
 from dicrl_torch.demos import (
     PAPER_SPLIT,
@@ -49,11 +50,6 @@ def write(path: Path, **overrides) -> Path:
     fields = valid_fields() | overrides
     np.savez(path, **{k: v for k, v in fields.items() if v is not None})
     return path
-
-
-def rejects(path: Path, field: str) -> str:
-    """Regex requiring the file name and then the field name in the message."""
-    return re.escape(path.name) + r".*" + re.escape(field)
 
 
 # ---- round trip ---------------------------------------------------------------------

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import re
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
+from npz_files import assert_file_refused, assert_not_an_archive
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 from dicrl_torch.demos import Trajectories, partition_demonstrations
@@ -612,17 +612,11 @@ def test_malformed_files_are_rejected(tmp_path, demos, case):
     field, mutate = BAD_FILES[case]
     f = _fields(demos.subset([0, 1, 2]))
     mutate(f)
-    path = tmp_path / f"bad_{case}.npz"
-    np.savez(path, **f)
-    with pytest.raises(ValueError, match=re.escape(path.name) + ".*" + re.escape(field)):
-        load_drone_demonstrations(path)
+    assert_file_refused(load_drone_demonstrations, tmp_path / f"bad_{case}.npz", f, field)
 
 
 def test_not_an_archive(tmp_path):
-    path = tmp_path / "junk.npz"
-    Path(path).write_bytes(b"not a zip file at all")
-    with pytest.raises(ValueError, match="junk.npz.*not an .npz|junk.npz.*corrupt"):
-        load_drone_demonstrations(path)
+    assert_not_an_archive(load_drone_demonstrations, tmp_path)
 
 
 def test_partition_4_5(demos):

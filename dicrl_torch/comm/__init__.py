@@ -1,6 +1,7 @@
 """Communication between learners: mixing schedules W(k), W̄(n), assumption checks and
 communicators."""
 
+from dicrl_torch.comm import graphs
 from dicrl_torch.comm.communicator import (
     ALLOWED_FIELDS,
     MessageRecord,
@@ -16,17 +17,10 @@ from dicrl_torch.comm.distributed import (
     shard_for_rank,
     spawn_learners,
 )
-from dicrl_torch.comm.graphs import (
-    CompleteSchedule,
-    DirectedCycleSchedule,
-    GraphAssumptionError,
-    MatrixSchedule,
-    MixingSchedule,
-    RingSchedule,
-    TimeVaryingSchedule,
-    check_inner_schedule,
-    check_outer_schedule,
-)
+
+# The mixing schedules and the checks of Assumptions 1-3: graphs' whole public API, named
+# once, by its __all__.
+from dicrl_torch.comm.graphs import *  # noqa: F403
 
 __all__ = [
     "ALLOWED_FIELDS",
@@ -40,13 +34,5 @@ __all__ = [
     "spawn_learners",
     "SimulatedCommunicator",
     "fixed_order_mix",
-    "CompleteSchedule",
-    "DirectedCycleSchedule",
-    "GraphAssumptionError",
-    "MatrixSchedule",
-    "MixingSchedule",
-    "RingSchedule",
-    "TimeVaryingSchedule",
-    "check_inner_schedule",
-    "check_outer_schedule",
 ]
+__all__ += graphs.__all__

@@ -25,6 +25,12 @@ from itertools import pairwise
 import numpy as np
 import torch
 
+__all__ = [
+    "CompleteSchedule", "DirectedCycleSchedule", "GraphAssumptionError", "MatrixSchedule",
+    "MixingSchedule", "RingSchedule", "TimeVaryingSchedule", "check_inner_schedule",
+    "check_outer_schedule",
+]
+
 _MAX_LISTED = 8  # entries quoted in an error message before "…"
 
 

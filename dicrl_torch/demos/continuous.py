@@ -42,14 +42,18 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from dicrl_torch.demos.npz import (
-    atomic_savez,
     check_expected,
     check_float_dtype,
+    check_lengths,
+    check_ndim,
+    check_seeds,
     frozen,
     is_int,
     open_archive,
     pad_episodes,
     read_field,
+    refuse_first,
+    save_archive,
 )
 from dicrl_torch.demos.trajectories import TrajectoryArrays
 from dicrl_torch.envs.joint import agent_rows
@@ -89,14 +93,12 @@ def _check_finite_in_episodes(a: np.ndarray, lengths: np.ndarray, field: str,
     for states, ``t < lengths[k]`` for actions); the padding after it is not looked at."""
     extra = 1 if field == "states" else 0
     bad = ~np.isfinite(a) & _valid_steps(lengths + extra, a.shape[1])[:, :, None, None]
-    if bad.any():
-        k, t, i, c = (int(v) for v in np.argwhere(bad)[0])
-        raise ValueError(
-            f"{source}: field '{field}' holds {a[k, t, i, c]} at (episode={k}, time={t}, "
-            f"agent={i}, component={c}), inside the episode (lengths[{k}] = "
-            f"{int(lengths[k])} steps); demonstrations must be finite up to their end. "
-            f"Re-record the episode, or end it earlier with its 'lengths' entry (entries "
-            f"after the end are padding and may hold anything).")
+    refuse_first(bad, lambda k, t, i, c: (
+        f"{source}: field '{field}' holds {a[k, t, i, c]} at (episode={k}, time={t}, "
+        f"agent={i}, component={c}), inside the episode (lengths[{k}] = "
+        f"{int(lengths[k])} steps); demonstrations must be finite up to their end. "
+        f"Re-record the episode, or end it earlier with its 'lengths' entry (entries "
+        f"after the end are padding and may hold anything)."))
 
 
 def validate_continuous_arrays(
@@ -126,22 +128,17 @@ def validate_continuous_arrays(
     states, actions, lengths = np.asarray(states), np.asarray(actions), np.asarray(lengths)
     check_float_dtype(states, "states", source)
     check_float_dtype(actions, "actions", source)
-    if states.ndim != 4:
-        raise ValueError(
-            f"{source}: field 'states' must have 4 dims [m, T+1, N, d_s] (episodes, times, "
-            f"agents, state components), got shape {states.shape}; give a single agent or a "
-            f"scalar state an axis of size 1 (e.g. `states[..., None]`).")
+    check_ndim(states, "states", 4, "[m, T+1, N, d_s] (episodes, times, agents, state "
+               "components)", source, hint="; give a single agent or a scalar state an axis "
+               "of size 1 (e.g. `states[..., None]`)")
     m, t1, n, d_s = states.shape
     if m < 1 or t1 < 2 or n < 1 or d_s < 1:
         raise ValueError(
             f"{source}: field 'states' has shape {states.shape} = [m, T+1, N, d_s], but "
             f"needs m >= 1 episodes, T+1 >= 2 times, N >= 1 agents and d_s >= 1 "
             f"components; record at least one step of one episode.")
-    if actions.ndim != 4:
-        raise ValueError(
-            f"{source}: field 'actions' must have 4 dims [m, T, N, d_a], got shape "
-            f"{actions.shape}; give a scalar action an axis of size 1 "
-            f"(e.g. `actions[..., None]`).")
+    check_ndim(actions, "actions", 4, "[m, T, N, d_a]", source,
+               hint="; give a scalar action an axis of size 1 (e.g. `actions[..., None]`)")
     # One message per disagreeing axis, so the user knows which array is off.
     for axis, what, want in ((0, "episodes m", m), (1, "steps T", t1 - 1), (2, "agents N", n)):
         if actions.shape[axis] != want:
@@ -154,18 +151,7 @@ def validate_continuous_arrays(
     if actions.shape[3] < 1:
         raise ValueError(f"{source}: field 'actions' has shape {actions.shape}: d_a = 0; "
                          f"each action needs at least one component.")
-    if not np.issubdtype(lengths.dtype, np.integer) or lengths.shape != (m,):
-        raise ValueError(
-            f"{source}: field 'lengths' must be an integer array of shape ({m},) (one "
-            f"length per episode of 'states'), got dtype {lengths.dtype} shape "
-            f"{lengths.shape}; store `lengths.astype(np.int64)`.")
-    out = (lengths < 1) | (lengths > t1 - 1)
-    if out.any():
-        k = int(np.flatnonzero(out)[0])
-        raise ValueError(
-            f"{source}: field 'lengths' holds {int(lengths[k])} for episode {k}, outside "
-            f"[1, T={t1 - 1}] (T from 'actions' {actions.shape}); a length counts the "
-            f"steps the episode took. Fix the length, or drop an episode without steps.")
+    check_lengths(lengths, m, t1 - 1, source, "episode")
     _check_finite_in_episodes(states, lengths, "states", source)
     _check_finite_in_episodes(actions, lengths, "actions", source)
     if agent_names is not None:
@@ -181,14 +167,7 @@ def validate_continuous_arrays(
             raise ValueError(
                 f"{source}: field 'agent_names' must be distinct non-empty names, got "
                 f"{names.tolist()} (empty at {empty}, repeated {dupes}); rename the agents.")
-    if seeds is not None:
-        seeds = np.asarray(seeds)
-        if not np.issubdtype(seeds.dtype, np.integer) or seeds.shape != (m,) \
-                or (seeds < 0).any():
-            raise ValueError(
-                f"{source}: field 'seeds' must be non-negative ints of shape ({m},) (one "
-                f"reset seed per episode), got dtype {seeds.dtype} shape {seeds.shape}; "
-                f"store `seeds.astype(np.int64)` or leave it out.")
+    check_seeds(seeds, m, source, "episode")
     if agent_lengths is not None:
         acted = np.asarray(agent_lengths)
         if not np.issubdtype(acted.dtype, np.integer) or acted.shape != (m, n):
@@ -197,14 +176,10 @@ def validate_continuous_arrays(
                 f"episode and agent the steps it acted), got dtype {acted.dtype} shape "
                 f"{acted.shape}; store `agent_lengths.astype(np.int64)` or leave it out "
                 f"(every agent then acts for the whole episode).")
-        out = (acted < 0) | (acted > lengths[:, None])
-        if out.any():
-            k, i = (int(v) for v in np.argwhere(out)[0])
-            raise ValueError(
-                f"{source}: field 'agent_lengths' holds {int(acted[k, i])} for episode {k}, "
-                f"agent {i}, outside [0, lengths[{k}] = {int(lengths[k])}]: an agent acts "
-                f"for at most the steps of its episode. Fix the entry or leave the field "
-                f"out.")
+        refuse_first((acted < 0) | (acted > lengths[:, None]), lambda k, i: (
+            f"{source}: field 'agent_lengths' holds {int(acted[k, i])} for episode {k}, "
+            f"agent {i}, outside [0, lengths[{k}] = {int(lengths[k])}]: an agent acts for "
+            f"at most the steps of its episode. Fix the entry or leave the field out."))
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -316,32 +291,26 @@ class ContinuousDemonstrations(TrajectoryArrays):
 
 
 # ================================================================================ disk
+def _archive_fields(demos: ContinuousDemonstrations) -> dict[str, np.ndarray | None]:
+    names = demos.agent_names
+    return {"states": demos.states, "actions": demos.actions, "lengths": demos.lengths,
+            "format_version": np.int64(FORMAT_VERSION),
+            # A fixed-width unicode array: it loads without pickle, unlike a list of str.
+            "agent_names": None if names is None else np.array(names, dtype=np.str_),
+            "seeds": demos.seeds, "agent_lengths": demos.agent_lengths}
+
+
 def save_continuous_demonstrations(
     path: str | os.PathLike[str], demos: ContinuousDemonstrations
 ) -> Path:
-    """Write ``demos`` to ``path`` as a compressed ``.npz``, atomically (see
-    :func:`dicrl_torch.demos.npz.atomic_savez`: no suffix is appended, parent
-    directories are created).
-
-    Returns:
-        The path written.
-    """
-    if not isinstance(demos, ContinuousDemonstrations):
-        raise TypeError(
-            f"save_continuous_demonstrations expects a ContinuousDemonstrations, got "
-            f"{type(demos).__name__}; wrap the arrays with ContinuousDemonstrations("
-            f"states=..., actions=..., lengths=...) or record them with "
-            f"record_demonstrations(env, policy, ...).")
-    fields = {"states": demos.states, "actions": demos.actions, "lengths": demos.lengths,
-              "format_version": np.int64(FORMAT_VERSION)}
-    if demos.agent_names is not None:
-        # A fixed-width unicode array: it loads without pickle, unlike a list of str.
-        fields["agent_names"] = np.array(demos.agent_names, dtype=np.str_)
-    if demos.seeds is not None:
-        fields["seeds"] = demos.seeds
-    if demos.agent_lengths is not None:
-        fields["agent_lengths"] = demos.agent_lengths
-    return atomic_savez(path, fields)
+    """Write ``demos`` to ``path`` for :func:`load_continuous_demonstrations`: a compressed
+    ``.npz``, written atomically by :func:`~dicrl_torch.demos.npz.save_archive` (no
+    suffix is appended, parent directories are created); return the path."""
+    return save_archive(
+        path, demos, ContinuousDemonstrations, fields=_archive_fields,
+        writer="save_continuous_demonstrations",
+        how="wrap the arrays with ContinuousDemonstrations(states=..., actions=..., "
+            "lengths=...) or record them with record_demonstrations(env, policy, ...)")
 
 
 def load_continuous_demonstrations(

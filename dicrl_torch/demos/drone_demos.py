@@ -35,18 +35,8 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
+from dicrl_torch.demos import npz
 from dicrl_torch.demos.continuous import ContinuousDemonstrations
-from dicrl_torch.demos.npz import (
-    atomic_savez,
-    check_expected,
-    check_float_dtype,
-    frozen,
-    is_int,
-    open_archive,
-    pad_episodes,
-    read_field,
-    read_scalar,
-)
 from dicrl_torch.demos.trajectories import TrajectoryArrays
 from dicrl_torch.envs.drones import (
     AGENTS,
@@ -57,6 +47,7 @@ from dicrl_torch.envs.drones import (
     DroneArena,
     DroneDynamics,
     in_own_door,
+    outside_room,
 )
 
 FORMAT_VERSION = 1
@@ -115,13 +106,10 @@ _WAIT_STEP_S = 0.25
 
 # ====================================================================== data + schema
 def _check_float_array(a: np.ndarray, field: str, source: str) -> None:
-    check_float_dtype(a, field, source)
-    if not np.all(np.isfinite(a)):
-        idx = tuple(int(v) for v in np.argwhere(~np.isfinite(a))[0])
-        raise ValueError(
-            f"{source}: field '{field}' holds a NaN or inf at index {idx}; "
-            f"demonstrations must be finite. Regenerate them."
-        )
+    npz.check_float_dtype(a, field, source)
+    npz.refuse_first(~np.isfinite(a), lambda *idx: (
+        f"{source}: field '{field}' holds a NaN or inf at index {idx}; "
+        f"demonstrations must be finite. Regenerate them."))
 
 
 def validate_drone_arrays(
@@ -162,34 +150,15 @@ def validate_drone_arrays(
             f"{states.shape} = [m, T+1, {N_DRONES}, 4] requires actions of shape "
             f"{(m, t1 - 1, N_DRONES, 2)} = [m, T, {N_DRONES}, 2]."
         )
-    if not np.issubdtype(lengths.dtype, np.integer) or lengths.shape != (m,):
-        raise ValueError(
-            f"{source}: field 'lengths' must be an integer array of shape ({m},), got "
-            f"dtype {lengths.dtype} shape {lengths.shape}; store `lengths.astype(np.int64)`."
-        )
+    npz.check_lengths(lengths, m, t1 - 1, source, "pair")
     pos = states[..., :2]
-    bad = (pos < 0.0) | (pos > ROOM_SIZE)
-    if bad.any():
-        k, t, i, c = (int(v) for v in np.argwhere(bad)[0])
-        raise ValueError(
-            f"{source}: field 'states' puts drone {i} at {pos[k, t, i].tolist()} (pair {k}, "
-            f"time {t}), outside the room [0, {ROOM_SIZE}]^2; expert demonstrations "
-            f"never leave the room. Regenerate them."
-        )
-    bad = np.abs(actions) > 1.0
-    if bad.any():
-        k, t, i, c = (int(v) for v in np.argwhere(bad)[0])
-        raise ValueError(
-            f"{source}: field 'actions' holds {actions[k, t, i, c]} (pair {k}, time {t}, "
-            f"drone {i}), outside the command range [-1, 1]; clip or regenerate it."
-        )
-    out = (lengths < 1) | (lengths > t1 - 1)
-    if out.any():
-        k = int(np.flatnonzero(out)[0])
-        raise ValueError(
-            f"{source}: field 'lengths' holds {int(lengths[k])} for pair {k}, outside "
-            f"[1, T={t1 - 1}]; a length counts the steps of the pair's episode."
-        )
+    npz.refuse_first(outside_room(pos), lambda k, t, i: (  # [m, T+1, 2]
+        f"{source}: field 'states' puts drone {i} at {pos[k, t, i].tolist()} (pair {k}, "
+        f"time {t}), outside the room [0, {ROOM_SIZE}]^2; expert demonstrations never "
+        f"leave the room. Regenerate them."))
+    npz.refuse_first(np.abs(actions) > 1.0, lambda k, t, i, c: (
+        f"{source}: field 'actions' holds {actions[k, t, i, c]} (pair {k}, time {t}, "
+        f"drone {i}), outside the command range [-1, 1]; clip or regenerate it."))
     for k, n in enumerate(lengths.tolist()):
         if not (np.all(states[k, n + 1:] == states[k, n]) and np.all(actions[k, n:] == 0)):
             raise ValueError(
@@ -197,14 +166,7 @@ def validate_drone_arrays(
                 f"states change or its actions are non-zero later; the lengths do not "
                 f"match the trajectories. Regenerate the demonstrations."
             )
-    if seeds is not None:
-        seeds = np.asarray(seeds)
-        if not np.issubdtype(seeds.dtype, np.integer) or seeds.shape != (m,) \
-                or (seeds < 0).any():
-            raise ValueError(
-                f"{source}: field 'seeds' must be non-negative ints of shape ({m},), got "
-                f"dtype {seeds.dtype} shape {seeds.shape}."
-            )
+    npz.check_seeds(seeds, m, source, "pair")
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -235,12 +197,12 @@ class DroneDemonstrations(TrajectoryArrays):
     def __post_init__(self) -> None:
         validate_drone_arrays(self.states, self.actions, self.lengths, self.dt, self.seeds,
                               source="DroneDemonstrations")
-        object.__setattr__(self, "states", frozen(self.states, np.float64))
-        object.__setattr__(self, "actions", frozen(self.actions, np.float64))
-        object.__setattr__(self, "lengths", frozen(self.lengths, np.int64))
+        object.__setattr__(self, "states", npz.frozen(self.states, np.float64))
+        object.__setattr__(self, "actions", npz.frozen(self.actions, np.float64))
+        object.__setattr__(self, "lengths", npz.frozen(self.lengths, np.int64))
         object.__setattr__(self, "dt", float(self.dt))
         if self.seeds is not None:
-            object.__setattr__(self, "seeds", frozen(self.seeds, np.int64))
+            object.__setattr__(self, "seeds", npz.frozen(self.seeds, np.int64))
 
     @property
     def n_pairs(self) -> int:
@@ -269,25 +231,21 @@ class DroneDemonstrations(TrajectoryArrays):
 
 
 # ================================================================================ disk
+def _archive_fields(demos: DroneDemonstrations) -> dict[str, np.ndarray | None]:
+    return {"states": demos.states, "actions": demos.actions, "lengths": demos.lengths,
+            "dt": np.float64(demos.dt), "format_version": np.int64(FORMAT_VERSION),
+            "seeds": demos.seeds}
+
+
 def save_drone_demonstrations(
     path: str | os.PathLike[str], demos: DroneDemonstrations
 ) -> Path:
-    """Write ``demos`` to ``path`` as a compressed ``.npz``, atomically (a temporary
-    file moved into place), creating parent directories; no suffix is appended.
-
-    Returns:
-        The path written.
-    """
-    if not isinstance(demos, DroneDemonstrations):
-        raise TypeError(
-            f"save_drone_demonstrations expects a DroneDemonstrations, got "
-            f"{type(demos).__name__}; build one with make_drone_demonstrations(...)."
-        )
-    fields = {"states": demos.states, "actions": demos.actions, "lengths": demos.lengths,
-              "dt": np.float64(demos.dt), "format_version": np.int64(FORMAT_VERSION)}
-    if demos.seeds is not None:
-        fields["seeds"] = demos.seeds
-    return atomic_savez(path, fields)
+    """Write ``demos`` to ``path`` for :func:`load_drone_demonstrations`: a compressed
+    ``.npz``, written atomically by :func:`~dicrl_torch.demos.npz.save_archive` (no
+    suffix is appended, parent directories are created); return the path."""
+    return npz.save_archive(path, demos, DroneDemonstrations, fields=_archive_fields,
+                            writer="save_drone_demonstrations",
+                            how="build one with make_drone_demonstrations(...)")
 
 
 def load_drone_demonstrations(
@@ -311,17 +269,18 @@ def load_drone_demonstrations(
     path = Path(path)
     source = f"drone demonstrations file '{path}'"
     fix = "save_drone_demonstrations"
-    with open_archive(path, source=source, required=FIELDS, optional=OPTIONAL_FIELDS,
-                      version=FORMAT_VERSION, fix=fix,
-                      generate="Generate the demonstrations with make_drone_demonstrations "
-                               "first") as archive:
-        file_dt = read_scalar(archive, "dt", source, fix, kind=float)
-        arrays = {f: read_field(archive, f, source, fix) for f in ARRAY_FIELDS}
-        seeds = read_field(archive, "seeds", source, fix) if "seeds" in archive.files else None
+    with npz.open_archive(path, source=source, required=FIELDS, optional=OPTIONAL_FIELDS,
+                          version=FORMAT_VERSION, fix=fix,
+                          generate="Generate the demonstrations with "
+                                   "make_drone_demonstrations first") as archive:
+        file_dt = npz.read_scalar(archive, "dt", source, fix, kind=float)
+        arrays = {f: npz.read_field(archive, f, source, fix) for f in ARRAY_FIELDS}
+        seeds = (npz.read_field(archive, "seeds", source, fix) if "seeds" in archive.files
+                 else None)
     validate_drone_arrays(arrays["states"], arrays["actions"], arrays["lengths"], file_dt,
                           seeds, source=source)
-    check_expected(source, {"n_pairs": arrays["states"].shape[0], "dt": file_dt},
-                   {"n_pairs": n_pairs, "dt": dt})
+    npz.check_expected(source, {"n_pairs": arrays["states"].shape[0], "dt": file_dt},
+                       {"n_pairs": n_pairs, "dt": dt})
     return DroneDemonstrations(dt=file_dt, seeds=seeds, **arrays)
 
 
@@ -506,7 +465,7 @@ def make_drone_demonstrations(
     Raises:
         RuntimeError: fewer than ``n_pairs`` successful pairs in ``max_attempts``.
     """
-    if not is_int(n_pairs) or n_pairs < 1:
+    if not npz.is_int(n_pairs) or n_pairs < 1:
         raise ValueError(f"n_pairs must be a positive int, got {n_pairs!r}.")
     if not isinstance(rng, np.random.Generator):
         raise TypeError(
@@ -533,7 +492,7 @@ def make_drone_demonstrations(
         states, actions, ok = fly_pair(plan, env, seed)
         if ok:
             pairs.append((states, actions, seed))
-    S, A, lengths = pad_episodes([(s, a) for s, a, _ in pairs])
+    S, A, lengths = npz.pad_episodes([(s, a) for s, a, _ in pairs])
     return DroneDemonstrations(states=S, actions=A, lengths=lengths, dt=env.dynamics.dt,
                                seeds=np.array([sd for _, _, sd in pairs], dtype=np.int64))
 

@@ -12,9 +12,10 @@ from __future__ import annotations
 import os
 import zipfile
 import zlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike
@@ -79,6 +80,72 @@ def atomic_savez(path: str | os.PathLike[str], fields: Mapping[str, np.ndarray])
     """
     # A file object, not a name: np.savez would otherwise append ".npz".
     return atomic_write(path, lambda f: np.savez_compressed(f, **fields))
+
+
+def check_ndim(a: np.ndarray, field: str, ndim: int, layout: str, source: str,
+               hint: str = "") -> None:
+    """Refuse ``a`` unless it has ``ndim`` dims, naming ``source``, the ``field``, its
+    ``layout`` (e.g. ``"[m, T, N]"``) and maybe a ``hint`` (``"; ..."``) on the fix."""
+    if a.ndim != ndim:
+        raise ValueError(f"{source}: field '{field}' must have {ndim} dims {layout}, got "
+                         f"shape {a.shape}{hint}.")
+
+
+def refuse_first(bad: np.ndarray, message: Callable[..., str]) -> None:
+    """Raise ``ValueError(message(*index))`` at the first True entry of ``bad`` (C order;
+    its index as ints), if any: how a check names the first offending entry."""
+    hits = np.argwhere(bad)
+    if len(hits):
+        raise ValueError(message(*(int(v) for v in hits[0])))
+
+
+def check_lengths(lengths: np.ndarray, m: int, horizon: int, source: str, unit: str) -> None:
+    """Refuse ``lengths`` unless it holds ``[m]`` ints in ``[1, horizon]``: the steps each
+    of ``m`` trajectories took (``unit``: what messages call one, e.g. ``"episode"``)."""
+    if not np.issubdtype(lengths.dtype, np.integer) or lengths.shape != (m,):
+        raise ValueError(
+            f"{source}: field 'lengths' must be an integer array of shape ({m},) (one "
+            f"length per {unit} of 'states'), got dtype {lengths.dtype} shape "
+            f"{lengths.shape}; store `lengths.astype(np.int64)`.")
+    refuse_first((lengths < 1) | (lengths > horizon), lambda k: (
+        f"{source}: field 'lengths' holds {int(lengths[k])} for {unit} {k}, outside "
+        f"[1, T={horizon}]; a length counts the steps the {unit} took. Fix the length, or "
+        f"drop a {unit} without steps."))
+
+
+def check_seeds(seeds: ArrayLike | None, m: int, source: str, unit: str) -> None:
+    """Refuse ``seeds`` unless it is None or ``[m]`` non-negative ints: the reset seed of
+    each of ``m`` trajectories (``unit``: what messages call one)."""
+    if seeds is None:
+        return
+    seeds = np.asarray(seeds)
+    if not np.issubdtype(seeds.dtype, np.integer) or seeds.shape != (m,) or (seeds < 0).any():
+        raise ValueError(
+            f"{source}: field 'seeds' must be non-negative ints of shape ({m},) (one reset "
+            f"seed per {unit}), got dtype {seeds.dtype} shape {seeds.shape}; store "
+            f"`seeds.astype(np.int64)` or leave it out.")
+
+
+def save_archive(path: str | os.PathLike[str], demos: Any, kind: type, *, writer: str,
+                 how: str, fields: Callable[[Any], Mapping[str, np.ndarray | None]]) -> Path:
+    """Write ``demos``, which must be a ``kind``, to ``path`` as the compressed ``.npz``
+    of ``fields(demos)`` (a None field is left out), atomically (:func:`atomic_savez`: no
+    suffix is appended, parent directories are created).
+
+    Args:
+        writer, how: the public function that saves a ``kind`` and how to make one, for
+            the refusal of anything else.
+
+    Returns:
+        The path written.
+
+    Raises:
+        TypeError: ``demos`` is not a ``kind``.
+    """
+    if not isinstance(demos, kind):
+        raise TypeError(f"{writer} expects a {kind.__name__}, got {type(demos).__name__}; "
+                        f"{how}.")
+    return atomic_savez(path, {f: a for f, a in fields(demos).items() if a is not None})
 
 
 @contextmanager

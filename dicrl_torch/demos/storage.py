@@ -18,13 +18,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from dicrl_torch.demos.npz import (
-    atomic_savez,
     check_expected,
+    check_ndim,
     frozen,
     is_int,
     open_archive,
     read_field,
     read_scalar,
+    refuse_first,
+    save_archive,
 )
 from dicrl_torch.demos.trajectories import TrajectoryArrays
 
@@ -50,15 +52,11 @@ def _check_integer_array(a: np.ndarray, field: str, source: str) -> None:
 
 
 def _check_range(a: np.ndarray, field: str, upper: int, source: str) -> None:
-    bad = (a < 0) | (a >= upper)
-    if bad.any():
-        m, t, i = (int(v) for v in np.argwhere(bad)[0])
-        raise ValueError(
-            f"{source}: field '{field}' holds {int(a[m, t, i])} at (trajectory={m}, "
-            f"time={t}, expert={i}), outside [0, {upper}). The data does not match "
-            f"{'n_cells' if field == 'states' else 'n_actions'}={upper}; regenerate it "
-            f"for this configuration."
-        )
+    refuse_first((a < 0) | (a >= upper), lambda m, t, i: (
+        f"{source}: field '{field}' holds {int(a[m, t, i])} at (trajectory={m}, "
+        f"time={t}, expert={i}), outside [0, {upper}). The data does not match "
+        f"{'n_cells' if field == 'states' else 'n_actions'}={upper}; regenerate it "
+        f"for this configuration."))
 
 
 def validate_arrays(
@@ -83,16 +81,8 @@ def validate_arrays(
     states, actions = np.asarray(states), np.asarray(actions)
     _check_integer_array(states, "states", source)
     _check_integer_array(actions, "actions", source)
-    if states.ndim != 3:
-        raise ValueError(
-            f"{source}: field 'states' must have shape [m, T+1, N] (3 dims), got shape "
-            f"{states.shape}."
-        )
-    if actions.ndim != 3:
-        raise ValueError(
-            f"{source}: field 'actions' must have shape [m, T, N] (3 dims), got shape "
-            f"{actions.shape}."
-        )
+    check_ndim(states, "states", 3, "[m, T+1, N]", source)
+    check_ndim(actions, "actions", 3, "[m, T, N]", source)
     m, t1, n = states.shape
     if m == 0:
         raise ValueError(
@@ -155,23 +145,19 @@ class Demonstrations(TrajectoryArrays):
         )
 
 
-def save_demonstrations(path: str | os.PathLike[str], demos: Demonstrations) -> Path:
-    """Write ``demos`` to ``path`` as a compressed ``.npz``, atomically (see
-    :func:`dicrl_torch.demos.npz.atomic_savez`: no suffix is appended, parent
-    directories are created).
+def _archive_fields(demos: Demonstrations) -> dict[str, np.ndarray]:
+    return {"states": demos.states, "actions": demos.actions,
+            "n_cells": np.int64(demos.n_cells), "n_actions": np.int64(demos.n_actions),
+            "format_version": np.int64(FORMAT_VERSION)}
 
-    Returns:
-        The path written.
-    """
-    if not isinstance(demos, Demonstrations):
-        raise TypeError(
-            f"save_demonstrations expects a Demonstrations, got {type(demos).__name__}; "
-            f"wrap the arrays with Demonstrations(states=..., actions=..., ...)."
-        )
-    return atomic_savez(path, {
-        "states": demos.states, "actions": demos.actions,
-        "n_cells": np.int64(demos.n_cells), "n_actions": np.int64(demos.n_actions),
-        "format_version": np.int64(FORMAT_VERSION)})
+
+def save_demonstrations(path: str | os.PathLike[str], demos: Demonstrations) -> Path:
+    """Write ``demos`` to ``path`` for :func:`load_demonstrations`: a compressed ``.npz``,
+    written atomically by :func:`~dicrl_torch.demos.npz.save_archive` (no suffix is
+    appended, parent directories are created); return the path."""
+    return save_archive(path, demos, Demonstrations, fields=_archive_fields,
+                        writer="save_demonstrations",
+                        how="wrap the arrays with Demonstrations(states=..., actions=..., ...)")
 
 
 def load_demonstrations(

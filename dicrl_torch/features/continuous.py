@@ -52,6 +52,24 @@ def _optional_int(name: str, value: Any) -> int | None:
     return None if value is None else check_int(name, value)
 
 
+def check_position_columns(position_columns: Sequence[int],
+                           state_dim: int | None) -> tuple[int, ...]:
+    """``position_columns``, the columns ``(x, y)`` of a position in an agent's state, as
+    two distinct non-negative ints below ``state_dim`` (when given).
+
+    Raises:
+        ValueError: anything else, naming the value.
+    """
+    cols = tuple(position_columns)
+    if len(cols) != 2 or any(isinstance(c, bool) or not isinstance(c, int | np.integer)
+                             or c < 0 for c in cols) or cols[0] == cols[1]:
+        raise ValueError(f"position_columns must be two distinct non-negative ints "
+                         f"(the x and y components of a state), got {position_columns!r}.")
+    if state_dim is not None and max(cols) >= state_dim:
+        raise ValueError(f"position_columns {cols} do not fit state_dim={state_dim}.")
+    return tuple(int(c) for c in cols)
+
+
 class ContinuousFeatureBasis(nn.Module):
     """Base class of the bases over joint states ``[..., N, d_s]`` (a
     :class:`~dicrl_torch.features.base.Basis` of kind ``"continuous"``).
@@ -525,14 +543,7 @@ class PositionCellBasis(ContinuousFeatureBasis):
         if isinstance(position_columns, slice):  # e.g. slice(0, 2) from Python code
             position_columns = range(position_columns.start or 0, position_columns.stop,
                                      position_columns.step or 1)
-        cols = tuple(position_columns)
-        if len(cols) != 2 or any(isinstance(c, bool) or not isinstance(c, int | np.integer)
-                                 or c < 0 for c in cols) or cols[0] == cols[1]:
-            raise ValueError(f"position_columns must be two distinct non-negative ints "
-                             f"(the x and y components of a state), got {position_columns!r}.")
-        if self.state_dim is not None and max(cols) >= self.state_dim:
-            raise ValueError(f"position_columns {cols} do not fit state_dim={self.state_dim}.")
-        self.position_columns = tuple(int(c) for c in cols)
+        self.position_columns = check_position_columns(position_columns, self.state_dim)
         self.max_value = float(self.n_agents)
         self.names = [f"cell({ix},{iy})" for iy in range(self.ny) for ix in range(self.nx)] \
             + ["proximity"]

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from dicrl_torch.features.continuous import ContinuousFeatureBasis
+from dicrl_torch.features.continuous import ContinuousFeatureBasis, check_position_columns
 
 __all__ = ["FEATURE_KINDS", "LandmarkRewardBasis"]
 
@@ -97,14 +97,7 @@ class LandmarkRewardBasis(ContinuousFeatureBasis):
                              f"got {features!r}; e.g. features=['coverage'].")
         # Canonical order, whatever order they were given in: names fix the layout.
         self.features = tuple(k for k in FEATURE_KINDS if k in kinds)
-        cols = tuple(position_columns)
-        if len(cols) != 2 or any(isinstance(c, bool) or not isinstance(c, int | np.integer)
-                                 or c < 0 for c in cols) or cols[0] == cols[1]:
-            raise ValueError(f"position_columns must be two distinct non-negative ints, got "
-                             f"{position_columns!r}.")
-        if self.state_dim is not None and max(cols) >= self.state_dim:
-            raise ValueError(f"position_columns {cols} do not fit state_dim={self.state_dim}.")
-        self.position_columns = tuple(int(c) for c in cols)
+        self.position_columns = check_position_columns(position_columns, self.state_dim)
         self.landmarks = tuple(map(tuple, lm.tolist()))
         m = len(lm)
         self.names = []

@@ -95,6 +95,18 @@ def with_defaults(function: Callable, names: Sequence[str], given: Mapping[str, 
     return {**out, **given}
 
 
+def _split_and_seed(split: Any, seed: Any, seeds: str) -> dict[str, Any]:
+    """Every task's ``split`` (:func:`check_split`) and ``seed`` (``seeds``: what it
+    seeds), checked."""
+    return {"split": check_split(split),
+            "seed": setting_int("seed", seed, least=0, example=0, why=f"it seeds {seeds}")}
+
+
+def _sac_timesteps(timesteps: Any) -> int:
+    """``SACTask``'s ``timesteps``, checked."""
+    return setting_int("timesteps", timesteps, example=2000, why="SAC env steps per solve")
+
+
 def _frozen_set(obj: Any, **values: Any) -> None:
     """Store checked (normalised) values on a frozen dataclass."""
     for name, value in values.items():
@@ -126,9 +138,7 @@ class GridSettings:
     def __post_init__(self) -> None:
         epsilon, most = check_greedy_stop(self.baseline_epsilon, self.baseline_max_constraints)
         _frozen_set(
-            self, split=check_split(self.split),
-            seed=setting_int("seed", self.seed, least=0, example=0,
-                             why="it seeds the demonstrations and evaluation"),
+            self, **_split_and_seed(self.split, self.seed, "the demonstrations and evaluation"),
             eval_episodes=setting_int("eval_episodes", self.eval_episodes, example=200,
                                       why="evaluation episodes per table row"),
             expert_temperature=setting_number("expert_temperature", self.expert_temperature,
@@ -334,11 +344,8 @@ class SACSettings:
                               init_multiplier=self.init_multiplier,
                               init_cost_weights=self.init_cost_weights)
         _frozen_set(
-            self, split=check_split(self.split),
-            seed=setting_int("seed", self.seed, least=0, example=0,
-                             why="it seeds the clones and the evaluation"),
-            timesteps=setting_int("timesteps", self.timesteps, example=2000,
-                                  why="SAC env steps per solve"),
+            self, **_split_and_seed(self.split, self.seed, "the clones and the evaluation"),
+            timesteps=_sac_timesteps(self.timesteps),
             n_eval_episodes=setting_int("n_eval_episodes", self.n_eval_episodes, example=10,
                                         why="rollouts per estimate of μ_r and μ_c"),
             threshold=check_threshold(self.threshold),
@@ -360,8 +367,7 @@ class SACSettings:
         Raises:
             InvalidSetting: the first setting out of range, naming its keyword.
         """
-        inner = setting_int("timesteps", timesteps, example=2000, why="SAC env steps per "
-                                                                      "solve")
+        inner = _sac_timesteps(timesteps)
         return cls(
             split=split, seed=seed, timesteps=inner, n_eval_episodes=n_eval_episodes,
             init_reward_weights=init_reward_weights, init_multiplier=init_multiplier,

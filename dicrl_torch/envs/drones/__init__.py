@@ -54,6 +54,7 @@ are :mod:`~dicrl_torch.envs.drones.arrays`. The demonstrations' planner is
 :mod:`dicrl_torch.demos.drone_demos`.
 """
 
+from dicrl_torch.envs.drones import geometry
 from dicrl_torch.envs.drones.dynamics import DroneDynamics, JointStep, joint_step, nominal_step
 from dicrl_torch.envs.drones.env import (
     DroneArena,
@@ -62,57 +63,24 @@ from dicrl_torch.envs.drones.env import (
     joint_obs_from_states,
     joint_obs_to_state,
 )
-from dicrl_torch.envs.drones.geometry import (
-    AGENTS,
-    CELL_SIZE,
-    DOOR_DEPTH,
-    DOORS,
-    GRID_CELLS,
-    N_DRONES,
-    NOMINAL_STARTS,
-    OBSTACLES,
-    PROXIMITY_RADIUS,
-    ROOM_SIZE,
-    START_JITTER,
-    door_centres,
-    in_obstacle,
-    in_own_door,
-    obstacle_cell_mask,
-    outside_room,
-    start_support,
-    too_close,
-)
+
+# The room, obstacle, doors, starts and the constraints' tests: geometry's whole public
+# API, named once, by its __all__.
+from dicrl_torch.envs.drones.geometry import *  # noqa: F403
 from dicrl_torch.envs.drones.render import DRONE_COLOURS, constraint_cell_mask, render_arena
 
 __all__ = [
-    "AGENTS",
-    "CELL_SIZE",
-    "DOORS",
-    "DOOR_DEPTH",
     "DRONE_COLOURS",
-    "GRID_CELLS",
-    "NOMINAL_STARTS",
-    "N_DRONES",
-    "OBSTACLES",
-    "PROXIMITY_RADIUS",
-    "ROOM_SIZE",
-    "START_JITTER",
     "DroneArena",
     "DroneDynamics",
     "JointDroneEnv",
     "JointStep",
     "RewardFn",
     "constraint_cell_mask",
-    "door_centres",
-    "in_obstacle",
-    "in_own_door",
     "joint_obs_from_states",
     "joint_obs_to_state",
     "joint_step",
     "nominal_step",
-    "obstacle_cell_mask",
-    "outside_room",
     "render_arena",
-    "start_support",
-    "too_close",
 ]
+__all__ += geometry.__all__

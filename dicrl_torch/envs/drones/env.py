@@ -32,9 +32,10 @@ from dicrl_torch.envs.drones.geometry import (
 )
 from dicrl_torch.envs.drones.render import constraint_cell_mask, render_arena
 from dicrl_torch.envs.parallel import CheckedParallelEnv
+from dicrl_torch.envs.planar import PlanarCommandSpaces
 
 
-class DroneArena(CheckedParallelEnv):
+class DroneArena(PlanarCommandSpaces, CheckedParallelEnv):
     """Two drones crossing a 10 m room; the true game or its nominal game.
 
     Observation of drone ``i`` (float32, 10 values): own position and velocity, the
@@ -109,13 +110,6 @@ class DroneArena(CheckedParallelEnv):
         self._overlay: np.ndarray | None = None
         self._rng: np.random.Generator | None = None
 
-    # ---- spaces (cached per agent by CheckedParallelEnv) ----------------------------
-    def _observation_space(self) -> spaces.Box:
-        return spaces.Box(low=self._obs_low, high=self._obs_high, dtype=np.float32)
-
-    def _action_space(self) -> spaces.Box:
-        return spaces.Box(low=-1.0, high=1.0, shape=(2,), dtype=np.float32)
-
     # ---- episode ------------------------------------------------------------------
     @property
     def started(self) -> bool:
@@ -175,8 +169,7 @@ class DroneArena(CheckedParallelEnv):
         self._require_started("observe")
         j = 1 - i
         o = np.concatenate([self._state[i], self._state[j], self._doors[i]])
-        # The dynamics keep o inside the bounds; the clip only absorbs float32 rounding.
-        return np.clip(o.astype(np.float32), self._obs_low, self._obs_high)
+        return self._bounded(o)  # the dynamics keep o inside the bounds
 
     def state(self) -> np.ndarray:
         """``[N, 4]`` float64 positions and velocities (done drones where they stopped)."""

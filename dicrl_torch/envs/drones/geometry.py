@@ -14,6 +14,13 @@ import numpy as np
 
 from dicrl_torch.envs.drones.arrays import const_like
 
+__all__ = [
+    "AGENTS", "CELL_SIZE", "DOORS", "DOOR_DEPTH", "GRID_CELLS", "NOMINAL_STARTS", "N_DRONES",
+    "OBSTACLES", "PROXIMITY_RADIUS", "ROOM_SIZE", "START_JITTER", "door_centres",
+    "in_obstacle", "in_own_door", "obstacle_cell_mask", "outside_room", "start_support",
+    "too_close",
+]
+
 # ---------------------------------------------------------------------------- layout
 ROOM_SIZE: float = 10.0
 """Side of the square room in metres; the room is ``[0, ROOM_SIZE]^2``."""

@@ -55,34 +55,13 @@ live with the demonstrations, in :mod:`dicrl_torch.demos.mpe_experts`.
 
 from __future__ import annotations
 
+from dicrl_torch.envs.mpe import layout
 from dicrl_torch.envs.mpe.env import ConstrainedSpread
-from dicrl_torch.envs.mpe.layout import (
-    MAX_SPEED,
-    START_MARGIN,
-    SUCCESS_RADIUS,
-    SpreadLayout,
-    check_number,
-    covering_agents,
-    in_disc,
-    landmarks_covered,
-    pairwise_too_close,
-    sample_starts,
-    sorted_assignment,
-)
+
+# The geometry, start sampler and tests: layout's whole public API, named once, by its
+# __all__.
+from dicrl_torch.envs.mpe.layout import *  # noqa: F403
 from dicrl_torch.envs.mpe.render import render_spread
 
-__all__ = [
-    "MAX_SPEED",
-    "START_MARGIN",
-    "SUCCESS_RADIUS",
-    "ConstrainedSpread",
-    "SpreadLayout",
-    "check_number",
-    "covering_agents",
-    "in_disc",
-    "landmarks_covered",
-    "pairwise_too_close",
-    "render_spread",
-    "sample_starts",
-    "sorted_assignment",
-]
+__all__ = ["ConstrainedSpread", "render_spread"]
+__all__ += layout.__all__

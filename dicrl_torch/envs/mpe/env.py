@@ -53,6 +53,7 @@ from dicrl_torch.envs.mpe.layout import (
 )
 from dicrl_torch.envs.mpe.render import render_spread
 from dicrl_torch.envs.parallel import CheckedParallelEnv
+from dicrl_torch.envs.planar import PlanarCommandSpaces
 
 
 def _collision_force(world: Any, entity_a: Any, entity_b: Any) -> list[Any]:
@@ -69,7 +70,7 @@ def _agent_names(n: int) -> list[str]:
     return [f"agent_{i}" for i in range(n)]
 
 
-class ConstrainedSpread(CheckedParallelEnv):
+class ConstrainedSpread(PlanarCommandSpaces, CheckedParallelEnv):
     """MPE ``simple_spread`` with fixed landmarks, a start region, a forbidden disc and
     a minimum inter-agent distance; the true game or its nominal game
     (:mod:`dicrl_torch.envs.mpe`).
@@ -172,13 +173,6 @@ class ConstrainedSpread(CheckedParallelEnv):
         self.violated = np.zeros(n, dtype=bool)  # ever violated, this episode
         self._history: list[np.ndarray] = []
         self._rng: np.random.Generator | None = None
-
-    # ---- spaces (cached per agent by CheckedParallelEnv) ----------------------------
-    def _observation_space(self) -> spaces.Box:
-        return spaces.Box(low=self._obs_low, high=self._obs_high, dtype=np.float32)
-
-    def _action_space(self) -> spaces.Box:
-        return spaces.Box(low=-1.0, high=1.0, shape=(2,), dtype=np.float32)
 
     # ---- episode ------------------------------------------------------------------
     @property
@@ -283,9 +277,7 @@ class ConstrainedSpread(CheckedParallelEnv):
         i = self._agent_index(agent)
         self._require_started("observe")
         o = self._scenario.observation(self._world.agents[i], self._world)
-        # The walls and the speed limit keep o inside the bounds; the clip only absorbs
-        # float32 rounding.
-        return np.clip(o.astype(np.float32), self._obs_low, self._obs_high)
+        return self._bounded(o)  # the walls and the speed limit keep o inside the bounds
 
     def state(self) -> np.ndarray:
         """``[N, 4]`` float64 ``x, y, vx, vy`` per agent (frozen agents where they stopped)."""

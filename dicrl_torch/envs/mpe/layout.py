@@ -19,6 +19,12 @@ import numpy as np
 import torch
 from mpe2.simple_spread.simple_spread import Scenario as SpreadScenario
 
+__all__ = [
+    "MAX_SPEED", "START_MARGIN", "SUCCESS_RADIUS", "SpreadLayout", "check_number",
+    "covering_agents", "in_disc", "landmarks_covered", "pairwise_too_close", "sample_starts",
+    "sorted_assignment",
+]
+
 SUCCESS_RADIUS: float = float(SpreadScenario.CAPTURE_RADIUS)
 """A landmark is covered by an agent within this distance (0.1; mpe2's capture radius)."""
 START_MARGIN: float = 0.05

@@ -27,6 +27,14 @@ def _mean_se(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return mean, x.std(0, correction=1) / math.sqrt(n)
 
 
+def _over_episodes(sums: str, doc: str, *, se: bool = False) -> property:
+    """A read-only property: the mean over episodes (dim 0) of the ``[n, l]`` field
+    ``sums``, or with ``se`` its standard error (:func:`_mean_se`)."""
+    if se:
+        return property(lambda self: _mean_se(getattr(self, sums))[1], doc=doc)
+    return property(lambda self: getattr(self, sums).mean(0), doc=doc)
+
+
 @dataclass(frozen=True)
 class SACSolution:
     """Rollout estimates of the current SAC policy (the grid solver's counterpart).
@@ -61,25 +69,12 @@ class SACSolution:
     def n_episodes(self) -> int:
         return int(self.reward_sums.shape[0])
 
-    @property
-    def mu_r(self) -> torch.Tensor:
-        """``[l_r]`` discounted reward-feature expectation ``μ_r(π)``."""
-        return self.reward_sums.mean(0)
-
-    @property
-    def mu_r_se(self) -> torch.Tensor:
-        """``[l_r]`` standard error of :attr:`mu_r`."""
-        return _mean_se(self.reward_sums)[1]
-
-    @property
-    def mu_c(self) -> torch.Tensor:
-        """``[l_c]`` discounted cost-feature expectation ``μ_c(π)``."""
-        return self.cost_sums.mean(0)
-
-    @property
-    def mu_c_se(self) -> torch.Tensor:
-        """``[l_c]`` standard error of :attr:`mu_c`."""
-        return _mean_se(self.cost_sums)[1]
+    mu_r = _over_episodes("reward_sums", "``[l_r]`` discounted reward-feature expectation "
+                                         "``μ_r(π)``.")
+    mu_r_se = _over_episodes("reward_sums", "``[l_r]`` standard error of :attr:`mu_r`.", se=True)
+    mu_c = _over_episodes("cost_sums", "``[l_c]`` discounted cost-feature expectation "
+                                       "``μ_c(π)``.")
+    mu_c_se = _over_episodes("cost_sums", "``[l_c]`` standard error of :attr:`mu_c`.", se=True)
 
     def cost_value(self, cost_weights: Any = None) -> tuple[float, float]:
         """``J_ωc = ω_c · μ_c`` and its standard error over episodes.
