@@ -31,10 +31,7 @@ LONG_MODULES = {
     # exact state all read the same SB3 model and its private streams.
     "solvers/sac/solver.py",
 }
-SPLIT_PENDING = {
-    # Being split by concern; empty this set once it is.
-    "solvers/factored.py",
-}
+SPLIT_PENDING: set[str] = set()  # modules being split by concern: empty once they are
 
 
 def part_of(module: str) -> str | None:

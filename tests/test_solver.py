@@ -152,6 +152,39 @@ def test_float32_solver_close_to_float64():
     assert (s32.local_occupancy - s64.local_occupancy).abs().max() < 1e-5
 
 
+@pytest.mark.parametrize("backup", ["causal", "trajectory"])
+def test_float32_keeps_what_the_states_share_out_of_the_values(backup):
+    """A part of V_t common to all states (here past the float32 limit of 1e4) leaves the
+    policy as it is; the solver keeps it in the per-step baseline c_t, so float32 resolves
+    the values at the scale of their spread over the states, and does not warn."""
+    model = make_model(4, 2, "open", horizon=40, gamma=0.99)
+    rb, cb = GoalClosenessRewardBasis(model), SharedIndicatorCostBasis(model)
+    reward = rb().weighted(rb.true_weights()) + cb().weighted(
+        torch.full((cb.dim,), 0.3, dtype=torch.float64)).scale(-3.0)
+    solver = FactoredSoftBellman(model=model, dtype=torch.float32)
+    plain = solver.solve(reward, backup=backup)
+    exact = FactoredSoftBellman(model=model, dtype=torch.float64).solve(reward, backup=backup)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        # A constant terminal value: the same game, to the last bit.
+        far = solver.solve(reward, backup=backup,
+                           terminal_value=torch.full(model.state_shape, 2e4))
+        # A constant reward: the same policy; float32 now resolves Q_t at the scale of
+        # the reward (400 a step) instead of the values'.
+        shifted = solver.solve(type(reward)(local=reward.local + 200.0, joint=reward.joint),
+                               backup=backup)
+    assert float(far.V.abs().min()) > 1e4 and float(shifted.V.abs().max()) > 1e4
+    assert torch.equal(far.values, plain.values)
+    assert torch.equal(far.local_occupancy, plain.local_occupancy)
+    assert float(shifted.values.abs().max()) < 100.0
+    assert (shifted.local_occupancy - exact.local_occupancy).abs().max() < 3e-3
+    cells = torch.tensor([[0, 15], [5, 10], [3, 12]])
+    for t in (0, 20, 39):
+        assert (shifted.policy_at(t, cells) - exact.policy_at(t, cells)).abs().max() < 1e-4
+    common = sum(400.0 * model.gamma**k for k in range(40))  # Σ_t γ^t · 2 · 200
+    assert math.isclose(shifted.log_partition - exact.log_partition, common, rel_tol=1e-6)
+
+
 @pytest.mark.parametrize("lam_", [1e6, -1e6])
 def test_extreme_multipliers_stay_finite(lam_):
     model = make_model(4, 2, "open", horizon=6)
@@ -221,18 +254,19 @@ def test_bad_inputs_are_refused():
 @pytest.mark.parametrize("scale", [1.0, 1e5])
 def test_float32_scale_warning_reads_the_finite_values(scale):
     """Forbidden states hold V = -inf; the float32 scale check looks past them and warns
-    with the largest finite |V|, exactly when that passes the limit."""
+    with the largest finite |V_t - c_t| (the values about their per-step baseline, what
+    float32 must resolve), exactly when that passes the limit."""
     layout, model, reward = masked_game(horizon=4, gamma=0.9, scale=scale)
     terminal = forbidden_state_value(model, layout)
     solver = FactoredSoftBellman(model=model, dtype=torch.float32)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         sol = solver.solve(reward, forward=False, terminal_value=terminal)
-    assert torch.isneginf(sol.V).any()
-    finite_max = float(sol.V[torch.isfinite(sol.V)].abs().max())
+    assert torch.isneginf(sol.V).any() and torch.equal(sol.V.isneginf(), sol.values.isneginf())
+    finite_max = float(sol.values[torch.isfinite(sol.values)].abs().max())
     said = [str(w.message) for w in caught if "float32" in str(w.message)]
     if scale == 1.0:
         assert finite_max < 1e4 and not said
     else:
         assert finite_max > 1e4 and len(said) == 1
-        assert said[0].startswith(f"|V| reaches {finite_max:.3g}:")
+        assert said[0].startswith(f"|V_t - c_t| reaches {finite_max:.3g} ")
