@@ -65,8 +65,7 @@ def trainer_spec(task: MPETask) -> TrainerSpec:
     return TrainerSpec(
         schedules=lambda n: (CompleteSchedule(n_learners=n), CompleteSchedule(n_learners=n)),
         steps=StepSizes(alpha_bar=0.002), inner_step=0.005, n_shards=len(task.split),
-        options=dict(inner_steps=2, lsca_curvature=50.0, prune_accrued=True,
-                     **task.initial_weights()))
+        options=dict(inner_steps=2, lsca_curvature=50.0, prune_accrued=True))
 
 
 def run_tiny(task: MPETask, out: Path) -> dict:

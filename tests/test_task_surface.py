@@ -201,3 +201,51 @@ def test_the_drone_bases_keep_their_fast_paths_and_abilities():
     grid = PositionCellBasis(n_agents=2, bounds=((-1, 1), (-1, 1)), proximity_radius=0.1,
                              n_per_axis=4)
     assert grid.cell_rectangles().shape == (16, 4) and not grid.dilatable
+
+
+class FixedStartTask(MinimalTask):
+    """A task that fixes η(0), ω_c(0) (as a SAC warm-up does), over tiny_dicrl's grid."""
+
+    def __init__(self) -> None:
+        import tiny_dicrl
+
+        self.solver, self.rb, self.cb, self.shards = tiny_dicrl.build_tiny()
+        self.split, self.demos = list(tiny_dicrl.SPLIT), None
+
+    def learner_model(self, local_ids, shards, stream):
+        from dicrl_torch.algos.models import TabularLearnerModel
+
+        return TabularLearnerModel(solver=self.solver, reward_basis=self.rb,
+                                   cost_basis=self.cb)
+
+    def initial_weights(self) -> dict[str, float]:
+        return {"init_reward_weights": 0.5, "init_multiplier": -2.0, "init_cost_weights": 0.25}
+
+
+def _spec(**options):
+    from dicrl_torch.algos.dicrl import StepSizes
+    from dicrl_torch.comm.graphs import CompleteSchedule
+    from dicrl_torch.runs.runner import TrainerSpec
+
+    return TrainerSpec(schedules=lambda n: (CompleteSchedule(n_learners=n),) * 2,
+                       steps=StepSizes(alpha_bar=0.02), inner_step=0.005, n_shards=3,
+                       options=dict(inner_steps=2, **options))
+
+
+def test_trainers_start_from_the_tasks_initial_weights_given_once():
+    from dicrl_torch.comm import SimulatedCommunicator
+    from dicrl_torch.runs.runner import make_trainer
+
+    task = FixedStartTask()
+    trainer = make_trainer(task, _spec(), task.shards, SimulatedCommunicator(n_learners=3),
+                           task.split, stream=0, progress=False)
+    eta, cost = trainer.state.eta, trainer.state.cost_weights  # [..., l_r + 1], [N_L, d]
+    assert torch.all(eta[..., :-1] == 0.5) and torch.all(eta[..., -1] == -2.0)
+    assert set(cost.unique().tolist()) == {0.0, 0.25}  # the start cells' pinned at 0
+    # the same value given again is fine; another one is refused, naming the fix
+    make_trainer(task, _spec(init_multiplier=-2.0), task.shards,
+                 SimulatedCommunicator(n_learners=3), task.split, stream=0, progress=False)
+    with pytest.raises(ValueError, match="init_multiplier.*give it once"):
+        make_trainer(task, _spec(init_multiplier=-1.0), task.shards,
+                     SimulatedCommunicator(n_learners=3), task.split, stream=0,
+                     progress=False)

@@ -259,8 +259,8 @@ class SACTask(Task):
 
     def initial_weights(self) -> dict[str, float]:
         """``η(0)`` and ``ω_c(0)`` as the trainer takes them (``DICRL``'s
-        ``init_reward_weights``, ``init_multiplier``, ``init_cost_weights``): the
-        warm-up trains on the same numbers, so pass these to the trainer."""
+        ``init_reward_weights``, ``init_multiplier``, ``init_cost_weights``): the warm-up
+        trains on them, and the runner's trainers start from them."""
         return {"init_reward_weights": float(self.eta0[0]),
                 "init_multiplier": float(self.eta0[-1]),
                 "init_cost_weights": float(self.cw0[0]) if len(self.cw0) else 0.0}

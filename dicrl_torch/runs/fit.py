@@ -283,8 +283,7 @@ def fit(
         schedules=schedules, steps=steps, inner_step=float(algo["inner_step"]),
         n_shards=len(split),
         options=dict(inner_steps=algo["inner_steps"], lsca_curvature=algo["lsca_curvature"],
-                     prune_accrued=algo["prune_accrued"], inner_method=algo["inner_method"],
-                     **run_task.initial_weights()))
+                     prune_accrued=algo["prune_accrued"], inner_method=algo["inner_method"]))
     name = out.resolve().name if experiment is None else str(experiment)
     config = _run_config(name=name, seed=seed, split=split, demos=demos,
                          env=(make_env, solver.spec),

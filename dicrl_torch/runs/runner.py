@@ -122,11 +122,23 @@ class TrainerSpec:
 def make_trainer(task: Task, spec: TrainerSpec, shards: Sequence, communicator,
                  trajectory_counts: Sequence[int], stream: int,
                  progress: bool = True) -> DICRL:
-    """The trainer of the learners ``communicator.local_ids`` (holding ``shards``)."""
+    """The trainer of the learners ``communicator.local_ids`` (holding ``shards``), starting
+    from the task's :meth:`~dicrl_torch.runs.task.Task.initial_weights` where it fixes them.
+
+    Raises:
+        ValueError: the trainer spec's options give other initial weights than the task.
+    """
+    kwargs = spec.kwargs(communicator.n_learners)
+    for key, value in task.initial_weights().items():
+        if key in spec.options and float(spec.options[key]) != value:
+            raise ValueError(
+                f"The task starts from {key}={value} (its warm-up trained there) but the "
+                f"trainer spec's options say {key}={spec.options[key]}; give it once, to "
+                f"the task (drop it from TrainerSpec.options).")
+        kwargs[key] = value
     return DICRL(learner_model=task.learner_model(communicator.local_ids, shards, stream),
                  shards=list(shards), trajectory_counts=list(trajectory_counts),
-                 communicator=communicator, progress=progress,
-                 **spec.kwargs(communicator.n_learners))
+                 communicator=communicator, progress=progress, **kwargs)
 
 
 def file_stem(name: str) -> str:

@@ -75,6 +75,13 @@ class Task(ABC):
         config: a checkpointed row is reused only under the same settings."""
 
     # ------------------------------------------------------------------ optional hooks
+    def initial_weights(self) -> dict[str, float]:
+        """``η(0)`` and ``ω_c(0)`` this task has already used (a SAC warm-up trained on
+        them), as ``DICRL``'s ``init_reward_weights``, ``init_multiplier``,
+        ``init_cost_weights``: the runner's trainers take them from here, so they are given
+        once. Empty (default): the trainer spec's options decide."""
+        return {}
+
     def announce(self, out: Path) -> None:
         """Once per run, by the main process, before training: here :meth:`describe`
         printed (a task also saves its demonstrations in ``out``)."""
