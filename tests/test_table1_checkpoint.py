@@ -41,6 +41,7 @@ class LearnerSide:
         self.evaluation_settings = lambda: {
             "threshold": float(cfg.algo.threshold), "eval_episodes": int(cfg.eval_episodes),
             "prune_min_gain": float(cfg.algo.prune_min_gain)}
+        self.initial_weights = dict  # the grid task's: the trainer spec's options decide
 
     def standing_still(self, m: int) -> Demonstrations:
         """``m`` trajectories that stay in the start cells: a trainer's fingerprint needs
