@@ -464,9 +464,11 @@ class ConfigExperiment:
     def task(self, rank: int | None = None):
         return build_task(self.cfg, rank)
 
+    @functools.cache  # noqa: B019 - one per run; its training config hashes shard files
     def settings(self) -> RunSettings:
         return run_settings(self.cfg)
 
+    @functools.cache  # noqa: B019 - one per run
     def trainer(self) -> TrainerSpec:
         return trainer_spec(self.cfg)
 

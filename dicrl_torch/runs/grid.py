@@ -204,7 +204,6 @@ class GridTask(Task):
     """
 
     columns = ("CR", "FPR", "FNR", "FNR_required", "CVR", "RFD")
-    multi_reference = True  # Experts (ground truth) and (nominal)
 
     def __init__(self, *, layout: GridLayout, model: TabularGridModel, solver, reward_basis,
                  cost_basis, true_reward_weights: torch.Tensor, expert_solver=None,
