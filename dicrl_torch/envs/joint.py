@@ -386,6 +386,28 @@ class JointAgentEnv(gym.Env):
         elif isinstance(self.env, CheckedParallelEnv):
             self.env._rng = rng
 
+    def vector_env(self, n_envs: int) -> Any:
+        """``n_envs`` episodes of this joint env stepped as one array computation (a
+        :class:`~dicrl_torch.envs.vector.JointVectorEnv`, for the SAC solver's lean
+        collection loop: :func:`~dicrl_torch.solvers.sac.env_list.vector_env_of`), or
+        None, and the solver steps ``n_envs`` copies one by one
+        (:class:`~dicrl_torch.solvers.sac.env_list.EnvList`).
+
+        The wrapped game batches itself when it has ``joint_vector_env(n_envs)``; such a
+        game's batched env gives the flattened joint state as observation, so it stands
+        for this wrapper only when the observation is that (``observation="state"``
+        with ``use_state``, in the same observation space). Otherwise None."""
+        factory = getattr(self.env, "joint_vector_env", None)
+        if not callable(factory) or self._observation_mode != "state" or not self.use_state:
+            return None
+        vec = factory(int(n_envs))
+        # observation="state" with an observation_space of the caller's: its bounds
+        # differ from the game's state_space, so the batched env would not match.
+        if vec is not None and vec.observation_space != self.observation_space:
+            vec.close()
+            return None
+        return vec
+
     def render(self) -> Any:
         return self.env.render()
 

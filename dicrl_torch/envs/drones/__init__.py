@@ -48,10 +48,11 @@ The package holds the game in its concerns: :mod:`~dicrl_torch.envs.drones.geome
 (the room, obstacle, doors, starts and the constraints' tests on positions),
 :mod:`~dicrl_torch.envs.drones.dynamics` (:class:`DroneDynamics` and the batched
 :func:`joint_step` / :func:`nominal_step`), :mod:`~dicrl_torch.envs.drones.env` (the
-PettingZoo :class:`DroneArena` and the single-agent :class:`JointDroneEnv`) and
-:mod:`~dicrl_torch.envs.drones.render` (the picture); the numpy/torch helpers they share
-are :mod:`~dicrl_torch.envs.drones.arrays`. The demonstrations' planner is
-:mod:`dicrl_torch.demos.drone_demos`.
+PettingZoo :class:`DroneArena` and the single-agent :class:`JointDroneEnv`),
+:mod:`~dicrl_torch.envs.drones.vector` (:class:`DroneVectorEnv`, many joint episodes
+stepped as one batch) and :mod:`~dicrl_torch.envs.drones.render` (the picture); the
+numpy/torch helpers they share are :mod:`~dicrl_torch.envs.drones.arrays`. The
+demonstrations' planner is :mod:`dicrl_torch.demos.drone_demos`.
 """
 
 from dicrl_torch.envs.drones import geometry
@@ -68,11 +69,13 @@ from dicrl_torch.envs.drones.env import (
 # API, named once, by its __all__.
 from dicrl_torch.envs.drones.geometry import *  # noqa: F403
 from dicrl_torch.envs.drones.render import DRONE_COLOURS, constraint_cell_mask, render_arena
+from dicrl_torch.envs.drones.vector import DroneVectorEnv
 
 __all__ = [
     "DRONE_COLOURS",
     "DroneArena",
     "DroneDynamics",
+    "DroneVectorEnv",
     "JointDroneEnv",
     "JointStep",
     "RewardFn",

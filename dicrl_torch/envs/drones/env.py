@@ -6,7 +6,7 @@ drives), with the joint observations' conversions to and from joint states
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -33,6 +33,9 @@ from dicrl_torch.envs.drones.geometry import (
 from dicrl_torch.envs.drones.render import constraint_cell_mask, render_arena
 from dicrl_torch.envs.parallel import CheckedParallelEnv
 from dicrl_torch.envs.planar import PlanarCommandSpaces
+
+if TYPE_CHECKING:  # vector.py builds on this module
+    from dicrl_torch.envs.drones.vector import DroneVectorEnv
 
 
 class DroneArena(PlanarCommandSpaces, CheckedParallelEnv):
@@ -381,6 +384,24 @@ class JointDroneEnv(gym.Env):
         """Draw the rest of this episode (its noise) and the unseeded resets after it
         from ``rng``: the arena's stream."""
         self.arena._rng = rng
+
+    def vector_env(self, n_envs: int) -> DroneVectorEnv:
+        """``n_envs`` episodes of this game (its arena's ``constrained``, ``max_steps``,
+        ``dynamics`` and ``proximity_radius``; not its ``reward_fn``, as the solver
+        rewards the transitions itself) stepped as one numpy computation.
+
+        It exists for the solver's lean collection loop: stepping ``n_envs`` joint envs
+        one by one costs a Python call chain per slot and step, while the batched
+        :class:`~dicrl_torch.envs.drones.vector.DroneVectorEnv` gives the same
+        transitions, bit for bit, with one :func:`joint_step` over all slots
+        (:func:`dicrl_torch.envs.vector.vector_env_of` picks it up).
+        """
+        from dicrl_torch.envs.drones.vector import DroneVectorEnv
+
+        arena = self.arena
+        return DroneVectorEnv(n_envs, constrained=arena.constrained,
+                              max_steps=arena.max_steps, dynamics=arena.dynamics,
+                              proximity_radius=arena.proximity_radius)
 
     def set_constraint_overlay(self, cells: Any) -> None:
         """See :meth:`DroneArena.set_constraint_overlay`."""

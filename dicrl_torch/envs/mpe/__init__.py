@@ -41,10 +41,13 @@ every landmark lies within :data:`SUCCESS_RADIUS` (0.1, mpe2's own capture radiu
 ``simple_spread``) of a distinct agent, and no agent violated a constraint during the
 episode. The covering test alone is :func:`landmarks_covered`.
 
-The package holds the game in three concerns: :mod:`~dicrl_torch.envs.mpe.layout` (the
-geometry, the start sampler, the constraint and covering tests, the matching of agents to
-landmarks), :mod:`~dicrl_torch.envs.mpe.env` (:class:`ConstrainedSpread` on mpe2's world)
-and :mod:`~dicrl_torch.envs.mpe.render` (the picture). The experts that fly it,
+The package holds the game in three concerns, and a fourth for speed:
+:mod:`~dicrl_torch.envs.mpe.layout` (the geometry, the start sampler, the constraint and
+covering tests, the matching of agents to landmarks), :mod:`~dicrl_torch.envs.mpe.env`
+(:class:`ConstrainedSpread` on mpe2's world), :mod:`~dicrl_torch.envs.mpe.render` (the
+picture) and, for the SAC solver's collection, :mod:`~dicrl_torch.envs.mpe.vector`
+(:class:`SpreadVectorEnv`, many episodes of its joint env stepped as one array
+computation). The experts that fly it,
 :class:`~dicrl_torch.demos.mpe_experts.NominalController` (every agent straight to its
 landmark, ignoring the constraints; it violates both kinds) and
 :class:`~dicrl_torch.demos.mpe_experts.ViaPointController` (around the disc in lanes,
@@ -62,6 +65,7 @@ from dicrl_torch.envs.mpe.env import ConstrainedSpread
 # __all__.
 from dicrl_torch.envs.mpe.layout import *  # noqa: F403
 from dicrl_torch.envs.mpe.render import render_spread
+from dicrl_torch.envs.mpe.vector import SpreadVectorEnv
 
-__all__ = ["ConstrainedSpread", "render_spread"]
+__all__ = ["ConstrainedSpread", "SpreadVectorEnv", "render_spread"]
 __all__ += layout.__all__

@@ -309,6 +309,21 @@ class ConstrainedSpread(PlanarCommandSpaces, CheckedParallelEnv):
         :data:`SUCCESS_RADIUS` of a distinct agent and no violation in the episode."""
         return self.landmarks_covered() and not self.violated.any()
 
+    def joint_vector_env(self, n_envs: int) -> Any:
+        """``n_envs`` episodes of this game's joint env (``JointAgentEnv(self,
+        observation="state", use_state=True)``, as ``spread_joint_env`` builds it)
+        stepped as one array computation: a
+        :class:`~dicrl_torch.envs.mpe.vector.SpreadVectorEnv` with this game's settings
+        (``local_ratio`` aside: it only weighs rewards, which a vector env does not
+        give). The SAC solver's lean collection loop steps it instead of ``n_envs``
+        copies of the joint env, one Python call chain per agent each, and gets the same
+        transitions (observations ``[n, 4 N]``, states ``[n, N, 4]``)."""
+        from dicrl_torch.envs.mpe.vector import SpreadVectorEnv  # it imports this module
+
+        return SpreadVectorEnv(n_envs, layout=self.layout, constrained=self.constrained,
+                               max_steps=self.max_steps, noise_std=self.noise_std,
+                               order_agents=self.order_agents)
+
     # ---- rendering ----------------------------------------------------------------
     def _render(self) -> np.ndarray:
         title = f"{self.metadata['name']}  t={self.timestep}/{self.max_steps}" + (

@@ -16,6 +16,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from dicrl_torch.envs.vector import generator_state_dict, restore_generator
+
 __all__ = [
     "capture_global_rng",
     "generator_state_dict",
@@ -89,43 +91,3 @@ def global_rng_from_state_dict(sd: dict[str, Any] | None, cuda: bool) -> tuple[A
                 r["gauss_next"])
     torch_cuda = None if sd["torch_cuda"] is None else [s.clone() for s in sd["torch_cuda"]]
     return sd["torch"].clone(), torch_cuda, np_state, py_state
-
-
-def _plain(value: Any) -> Any:
-    """numpy arrays as tensors, numpy scalars as python ones, recursively."""
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, np.ndarray):
-        return torch.from_numpy(np.array(value, copy=True))
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
-def _native(value: Any) -> Any:
-    """The inverse of :func:`_plain` (tensors back to numpy arrays)."""
-    if isinstance(value, dict):
-        return {k: _native(v) for k, v in value.items()}
-    if isinstance(value, torch.Tensor):
-        return value.numpy().copy()
-    return value
-
-
-def generator_state_dict(gen: np.random.Generator | None) -> dict[str, Any] | None:
-    """The bit generator state of a numpy ``Generator`` (None for None) as plain data:
-    for PCG64 (``default_rng``, gymnasium's seeding) python ints only."""
-    return None if gen is None else _plain(gen.bit_generator.state)
-
-
-def restore_generator(current: np.random.Generator | None,
-                      sd: dict[str, Any] | None) -> np.random.Generator | None:
-    """A generator in state ``sd``: ``current`` itself, set in place, when its bit
-    generator is of the saved kind, else a new one (None for ``sd`` None)."""
-    if sd is None:
-        return None
-    state = _native(sd)
-    name = state["bit_generator"]
-    if current is None or type(current.bit_generator).__name__ != name:
-        current = np.random.Generator(getattr(np.random, name)())
-    current.bit_generator.state = state
-    return current
