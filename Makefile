@@ -37,6 +37,7 @@ lint: install
 bench: install
 	$(PY) -m dicrl_torch.bench solver --experts 2
 	$(PY) -m dicrl_torch.bench solver --experts 3
+	$(PY) -m dicrl_torch.bench sac
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

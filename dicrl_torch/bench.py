@@ -1,12 +1,24 @@
-"""Benchmarks: ``python -m dicrl_torch.bench solver --experts N [--grid G] ...``.
+"""Benchmarks, each printing one JSON line (docs/design.md §8).
 
-Prints one JSON line (docs/design.md §8)::
+``python -m dicrl_torch.bench solver --experts N [--grid G] ...``::
 
     {"pairs": int, "backward_sweep_s": float, "forward_sweep_s": float,
      "peak_rss_gb": float, "device": str, ...}
 
 ``backward_sweep_s`` / ``forward_sweep_s`` are the median seconds per time step over
 ``--repeat`` timed solves (after one warm-up solve, which also compiles kernels).
+
+``python -m dicrl_torch.bench sac [--steps S] [--repeat R] [--learners E] ...``: the SAC solver at
+``experiment=table2_quick``'s solver settings (:data:`TABLE2_QUICK_SOLVER`, the drone
+arena with its demonstrations in every batch), each engine timed on ``--steps`` env
+steps after learning has started, the engines alternated ``--repeat`` times in one
+process on the same threads::
+
+    {"loops": {"sb3": {"updates_per_s": float, "env_steps_per_s": float, ...},
+               "lean": {...}},
+     "ratio": {"updates_per_s": float, "env_steps_per_s": float}, "threads": int, ...}
+
+``ratio`` is the lean loop's median over the SB3 loop's (today's loop before the lean one).
 """
 
 from __future__ import annotations
@@ -16,12 +28,32 @@ import json
 import resource
 import statistics
 import sys
+import time
+from typing import Any
 
+import numpy as np
 import torch
 
+from dicrl_torch.demos.drone_demos import make_drone_demonstrations
+from dicrl_torch.envs.drones import DroneDynamics, JointDroneEnv
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel
 from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
+from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
 from dicrl_torch.solvers.factored import FactoredSoftBellman
+from dicrl_torch.solvers.sac import SACConstrainedSolver
+from dicrl_torch.solvers.sac.lean import learn_together
+
+TABLE2_QUICK_SOLVER: dict[str, Any] = {
+    "n_envs": 4, "gradient_steps": 4, "ent_coef": 0.1, "learning_rate": 1.0e-3,
+    "gamma": 0.99, "batch_size": 256, "learning_starts": 1000, "buffer_size": 100_000,
+    "net_arch": (64, 64), "tau": 0.02, "scale_observations": True,
+    "per_agent_critics": True, "split_cost_critic": True, "demo_fraction": 0.25,
+    "estimate_action": "sampled", "absorbing": True,
+}
+"""``experiment=table2_quick``'s ``solver.solver`` settings (tests/test_bench.py checks them
+against the composed config), less ``engine``."""
+TABLE2_QUICK_DYNAMICS = {"command_set": "disc", "max_speed": 1.5}
+"""``experiment=table2_quick``'s drone dynamics (``env.arena.dynamics``)."""
 
 
 def _peak_rss_gb() -> float:
@@ -64,6 +96,67 @@ def bench_solver(*, experts: int, grid: int = 9, horizon: int = 10, repeat: int 
     }
 
 
+def _time_sac(engine: str, steps: int, seed: int, device: str, demos: Any,
+              learners: int) -> dict[str, float]:
+    """One timing: ``learners`` fresh solvers at :data:`TABLE2_QUICK_SOLVER` with
+    ``engine``, trained past ``learning_starts`` (untimed), then ``steps`` env steps each,
+    timed: the lean ones as one ensemble, as learners sharing a process train, SB3's one
+    after the other. Rates are per learner."""
+    dynamics = DroneDynamics(**TABLE2_QUICK_DYNAMICS)
+    solvers = []
+    for k in range(learners):
+        solver = SACConstrainedSolver(
+            env_factory=lambda constrained: JointDroneEnv(constrained=constrained,
+                                                          dynamics=dynamics),
+            reward_basis=DoorLocationRewardBasis(), cost_basis=CellOccupancyCostBasis(),
+            seed=seed * 1000 + k, device=device, n_eval_episodes=1, engine=engine,
+            **TABLE2_QUICK_SOLVER)
+        solver.set_demonstrations(demos)
+        solver.set_weights(np.array([1.0, 1.0, 1.0, 1.0, -5.0]), np.full(solver.l_c, 0.1))
+        solver.engine.learn(TABLE2_QUICK_SOLVER["learning_starts"] + 256)
+        solvers.append(solver)
+    updates, t0 = sum(s.n_updates for s in solvers), time.perf_counter()
+    if engine == "lean":
+        learn_together([s.engine for s in solvers], steps)
+    else:
+        for solver in solvers:
+            solver.engine.learn(steps)
+    dt = time.perf_counter() - t0
+    updates = sum(s.n_updates for s in solvers) - updates
+    for solver in solvers:
+        solver.close()
+    return {"updates_per_s": updates / dt / learners,
+            "env_steps_per_s": steps * learners / dt / learners, "seconds": dt,
+            "updates": updates}
+
+
+def bench_sac(*, steps: int = 2000, repeat: int = 3, device: str = "cpu", seed: int = 0,
+              learners: int = 1, loops: tuple[str, ...] = ("sb3", "lean")) -> dict:
+    """Time each SAC engine (``loops``) ``repeat`` times with ``learners`` learners in the
+    process, alternating the engines so that both see the same machine; medians (per
+    learner) and the last loop's ratio over the first."""
+    demos = make_drone_demonstrations(4, rng=np.random.default_rng(seed),
+                                      dynamics=DroneDynamics(**TABLE2_QUICK_DYNAMICS))
+    runs: dict[str, list[dict[str, float]]] = {loop: [] for loop in loops}
+    for rep in range(repeat):
+        for loop in loops:
+            runs[loop].append(_time_sac(loop, steps, seed + rep, device, demos, learners))
+    medians = {loop: {key: statistics.median(r[key] for r in rs)
+                      for key in ("updates_per_s", "env_steps_per_s")}
+               for loop, rs in runs.items()}
+    for loop, rs in runs.items():
+        medians[loop]["all_updates_per_s"] = [round(r["updates_per_s"], 1) for r in rs]
+    base, new = medians[loops[0]], medians[loops[-1]]
+    dev = torch.device(device)
+    return {
+        "loops": medians,
+        "ratio": {key: new[key] / base[key] for key in ("updates_per_s", "env_steps_per_s")},
+        "steps": steps, "repeat": repeat, "threads": torch.get_num_threads(),
+        "device": str(dev) if dev.type == "cpu" else torch.cuda.get_device_name(dev),
+        "settings": "experiment=table2_quick solver.solver", "learners": learners,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dicrl_torch.bench")
     sub = parser.add_subparsers(dest="what", required=True)
@@ -74,7 +167,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeat", type=int, default=3, help="timed solves (median reported)")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     p.add_argument("--compile", default="auto", choices=("auto", "on", "off"))
+    q = sub.add_parser("sac", help="time the SAC solver's loops (SB3's and the lean one)")
+    q.add_argument("--steps", type=int, default=2000, help="timed env steps per run")
+    q.add_argument("--repeat", type=int, default=3, help="runs per loop (median reported)")
+    q.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    q.add_argument("--threads", type=int, default=1, help="torch threads (1: as the runs)")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--learners", type=int, default=1,
+                   help="learners in the process (the lean ones trained as one ensemble)")
     args = parser.parse_args(argv)
+    if args.what == "sac":
+        if args.steps < 4 or min(args.repeat, args.threads, args.learners) < 1:
+            parser.error("--steps must be >= 4, --repeat, --threads and --learners >= 1")
+        if args.device == "cuda" and not torch.cuda.is_available():
+            parser.error("--device cuda requested but CUDA is not available")
+        torch.set_num_threads(args.threads)
+        print(json.dumps(bench_sac(steps=args.steps, repeat=args.repeat, device=args.device,
+                                   seed=args.seed, learners=args.learners)), flush=True)
+        return 0
     if args.grid < 2:
         parser.error("--grid must be >= 2")
     if args.horizon < 1 or args.repeat < 1:

@@ -31,11 +31,12 @@ ROOT = Path(__file__).resolve().parents[1]
 GAMMA = 0.95
 
 
-def make_solver(seed: int = 0) -> SACConstrainedSolver:
+def make_solver(seed: int = 0, engine: str = "lean") -> SACConstrainedSolver:
     return SACConstrainedSolver(
         reward_basis=DoorLocationRewardBasis(), cost_basis=CellOccupancyCostBasis(), seed=seed,
         n_envs=2, gamma=GAMMA, learning_starts=40, batch_size=16, net_arch=(16, 16),
-        env_factory=functools.partial(JointDroneEnv, max_steps=20), n_eval_episodes=2)
+        env_factory=functools.partial(JointDroneEnv, max_steps=20), n_eval_episodes=2,
+        engine=engine)
 
 
 @pytest.fixture(scope="module")
@@ -91,20 +92,25 @@ def test_learner_model_statistics_are_the_demonstrations_feature_sums(demos):
         SACLearnerModel(solvers=[], timesteps=1)
 
 
-def test_a_clone_is_independent_and_reproducible():
-    base = make_solver(3)
+@pytest.mark.parametrize("engine", ["lean", "sb3"])
+def test_a_clone_is_independent_and_reproducible(engine):
+    base = make_solver(3, engine)
     eta, wc = np.array([1.0, 1, 1, 1, -1]), np.zeros(201)
-    before = [p.clone() for p in base.model.actor.parameters()]
+    before = base.policy_state()  # a copy: actor, critics and target critics
     a, b = base.clone(7), base.clone(7)
     sa, sb = a.solve(eta, wc, 60), b.solve(eta, wc, 60)
+    assert a.n_updates > 0
     torch.testing.assert_close(sa.mu_c, sb.mu_c, rtol=0, atol=0)
-    for p, q in zip(a.model.actor.parameters(), b.model.actor.parameters(), strict=True):
-        torch.testing.assert_close(p, q, rtol=0, atol=0)
+    pa, pb = a.policy_state(), b.policy_state()
+    assert pa.keys() == pb.keys() == before.keys()
+    for key in pa:
+        torch.testing.assert_close(pa[key], pb[key], rtol=0, atol=0, msg=key)
     # training a clone leaves the original untouched
-    for p, q in zip(before, base.model.actor.parameters(), strict=True):
-        torch.testing.assert_close(p, q, rtol=0, atol=0)
-    assert any(not torch.equal(p, q) for p, q in zip(
-        before, a.model.actor.parameters(), strict=True))
+    after = base.policy_state()
+    for key in before:
+        torch.testing.assert_close(before[key], after[key], rtol=0, atol=0, msg=key)
+    assert base.num_timesteps == 0 and base.replay_buffer is not a.replay_buffer
+    assert any(not torch.equal(before[k], pa[k]) for k in before if k.startswith("actor."))
     c = base.clone(8).solve(eta, wc, 60)
     assert not torch.equal(c.mu_c, sa.mu_c) or not torch.equal(c.mu_r, sa.mu_r)
 

@@ -26,11 +26,7 @@ FLOOR = {part: level for level, parts in enumerate(FLOORS) for part in parts}
 
 MAX_MODULE_LINES = 700
 """A module longer than this holds more than one concern: split it by concern."""
-LONG_MODULES = {
-    # One class, the constrained solver around SB3's SAC: training, evaluation and its
-    # exact state all read the same SB3 model and its private streams.
-    "solvers/sac/solver.py",
-}
+LONG_MODULES: set[str] = set()
 
 
 def part_of(module: str) -> str | None:

@@ -1,7 +1,9 @@
 """Tests of the SAC-style constrained solver (the package dicrl_torch/solvers/sac/).
 
 Kept short (a few thousand env steps in all) and on one CPU thread, so that the numbers
-are reproducible and the file runs in well under a minute.
+are reproducible and the file runs in well under a minute. What both engines must keep
+(relabelling, demonstrations, seeds, clones, best-keeping) runs on both (``ENGINES``);
+what is about stable-baselines3's pieces runs on ``engine="sb3"``.
 """
 
 from __future__ import annotations
@@ -9,11 +11,13 @@ from __future__ import annotations
 import copy
 import functools
 import tempfile
+from typing import Any, NamedTuple
 
 import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
+from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
 from stable_baselines3.common.logger import Logger
 
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations
@@ -33,6 +37,7 @@ torch.set_num_threads(1)
 
 L_R, L_C = 4, 201
 GAMMA = 0.95
+ENGINES = ["lean", "sb3"]
 
 
 def make_solver(seed: int = 0, **kwargs) -> SACConstrainedSolver:
@@ -49,67 +54,184 @@ def random_weights(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     return eta, rng.uniform(0, 1, L_C)
 
 
-@pytest.fixture(scope="module")
-def filled() -> SACConstrainedSolver:
+@functools.cache
+def filled_solver(engine: str) -> SACConstrainedSolver:
     """A solver whose buffer holds 200 transitions (2 envs, episodes of 30 steps)."""
-    solver = make_solver(seed=1, learning_starts=10_000)  # random actions, no updates
+    solver = make_solver(seed=1, learning_starts=10_000, engine=engine)  # random actions
     eta, wc = random_weights(np.random.default_rng(0))
     solver.solve(eta, wc, 200, n_eval_episodes=2)
     return solver
 
 
-def hand_rewards(buf: FeatureReplayBuffer, b: np.ndarray, e: np.ndarray, eta: np.ndarray,
-                 wc: np.ndarray) -> np.ndarray:
-    phi_r = buf.reward_features[b, e].astype(np.float64)
-    phi_c = buf.cost_features[b, e].astype(np.float64)
-    return buf.reward_scale[b, e] * (phi_r @ eta[:-1] + eta[-1] * (phi_c @ wc))
+@pytest.fixture(scope="module", params=ENGINES)
+def filled(request) -> SACConstrainedSolver:
+    return filled_solver(request.param)
+
+
+@pytest.fixture(scope="module")
+def filled_sb3() -> SACConstrainedSolver:
+    return filled_solver("sb3")
+
+
+# A stored transition's index: SB3's (batch_inds, env_indices) of FeatureReplayBuffer's
+# [buffer_size, n_envs, ...] arrays, or the lean TransitionStore's flat rows.
+Index = Any
+
+
+def hand_rewards(buf: Any, idx: Index, eta: np.ndarray, wc: np.ndarray) -> np.ndarray:
+    """``[B]`` float64 rewards of stored transitions ``idx`` from their stored features."""
+    phi_r = buf.reward_features[idx].astype(np.float64)
+    phi_c = buf.cost_features[idx].astype(np.float64)
+    return buf.reward_scale[idx] * (phi_r @ eta[:-1] + eta[-1] * (phi_c @ wc))
+
+
+def filled_rows(buf: Any) -> Index:
+    """Every stored transition's index."""
+    if isinstance(buf, FeatureReplayBuffer):
+        b, e = np.meshgrid(np.arange(buf.pos), np.arange(buf.n_envs), indexing="ij")
+        return b.ravel(), e.ravel()
+    return np.arange(buf.size)
+
+
+def n_rows(idx: Index) -> int:
+    return len(idx[0]) if isinstance(idx, tuple) else len(idx)
+
+
+class Drawn(NamedTuple):
+    """A batch ``[B, ...]`` (its last ``demo_rows(B)`` rows demonstrated) and the
+    stored index of its other rows."""
+
+    obs: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    next_obs: torch.Tensor
+    dones: torch.Tensor
+    index: Index
+
+
+def draw(buf: Any, n: int, seed: int = 0) -> Drawn:
+    """A batch of ``n`` from either engine's replay buffer, on a stream seeded by
+    ``seed``. The lean store does not say which rows it drew: they are found back by
+    their stored actions (random floats: distinct) and checked by their observations."""
+    if isinstance(buf, FeatureReplayBuffer):
+        np.random.seed(seed)  # noqa: NPY002 (SB3's sampling stream; deterministic test)
+        s = buf.sample(n)
+        return Drawn(s.observations, s.actions, s.rewards, s.next_observations, s.dones,
+                     buf.last_sample_indices)
+    fields, _ = buf.sample(n, torch.Generator().manual_seed(seed))
+    k = n - buf.demo_rows(n)
+    row_of = {a.numpy().tobytes(): i for i, a in enumerate(buf.actions[:buf.size])}
+    assert len(row_of) == buf.size  # every stored action is a row's own
+    rows = np.array([row_of[a.numpy().tobytes()] for a in fields[1][:k]], dtype=np.int64)
+    assert torch.equal(fields[0][:k], buf.obs[rows])
+    assert torch.equal(fields[3][:k], buf.next_obs[rows])
+    return Drawn(*fields, rows)
+
+
+def expected_batch_rewards(buf: Any, idx: Index, eta: np.ndarray,
+                           wc: np.ndarray) -> np.ndarray:
+    """``[B]`` float32: the rewards a batch must carry for stored transitions ``idx``
+    right after ``set_weights(eta, wc)``. SB3 relabels the sampled rows; the lean store
+    relabelled every stored row at set_weights, so its float64 arithmetic is that over
+    all of them (BLAS may sum a row's dot product in another order for another number
+    of rows, which can move the last bit), then cast to float32."""
+    if isinstance(buf, FeatureReplayBuffer):
+        return hand_rewards(buf, idx, eta, wc).astype(np.float32)
+    return hand_rewards(buf, filled_rows(buf), eta, wc)[idx].astype(np.float32)
+
+
+def assert_stored_rewards(buf: Any, idx: Index, eta: np.ndarray, wc: np.ndarray) -> None:
+    """Exactly: the stored transitions ``idx`` carry the rewards of ``(eta, wc)`` from
+    their features (SB3: its relabelling of them; lean: the labels it stores for every
+    row, and its relabelling of ``idx``)."""
+    hand = hand_rewards(buf, idx, eta, wc)
+    if isinstance(buf, FeatureReplayBuffer):
+        np.testing.assert_array_equal(buf.compute_rewards(*idx), hand)
+        return
+    everything = hand_rewards(buf, filled_rows(buf), eta, wc)  # as relabelled (above)
+    np.testing.assert_array_equal(buf.rewards[:buf.size, 0].numpy(),
+                                  everything.astype(np.float32))
+    np.testing.assert_array_equal(buf._labels(idx)[:, 0].numpy(), hand.astype(np.float32))
+
+
+def stored_rewards(buf: Any, idx: Index) -> np.ndarray:
+    """``[B]`` the joint rewards stored transitions ``idx`` carry now (SB3: float64
+    relabelled; lean: its float32 labels)."""
+    if isinstance(buf, FeatureReplayBuffer):
+        return buf.compute_rewards(*idx)
+    return buf.rewards[idx].numpy().sum(-1)
+
+
+def actor_params(solver: SACConstrainedSolver) -> list[torch.Tensor]:
+    """Copies of the actor's weights (either engine)."""
+    return [v.clone() for k, v in solver.policy_state().items() if k.startswith("actor.")]
 
 
 # ---------------------------------------------------------------------------- buffer
 def test_changing_eta_changes_sampled_rewards_of_stored_transitions(filled):
     solver, buf = filled, filled.replay_buffer
-    assert buf.pos == 100 and buf.n_envs == 2
+    if isinstance(buf, FeatureReplayBuffer):
+        assert buf.pos == 100 and buf.n_envs == 2
+    else:
+        assert buf.size == buf.pos == 200
     rng = np.random.default_rng(5)
     eta1, wc1 = random_weights(rng)
     eta2, wc2 = random_weights(rng)
 
     solver.set_weights(eta1, wc1)
-    s1 = buf.sample(64)
-    b1, e1 = buf.last_sample_indices
+    s1 = draw(buf, 64, seed=1)
     # Exact: the sampled rewards are the features stored with each transition, weighted
     # by the current weights (float64, then float32 as SB3 stores rewards).
-    expect1 = hand_rewards(buf, b1, e1, eta1, wc1).astype(np.float32)
+    expect1 = expected_batch_rewards(buf, s1.index, eta1, wc1)
     assert torch.equal(s1.rewards, torch.from_numpy(expect1).reshape(-1, 1))
 
     solver.set_weights(eta2, wc2)  # new η and ω_c: nothing is re-added to the buffer
-    s2 = buf.sample(64)
-    b2, e2 = buf.last_sample_indices
-    expect2 = hand_rewards(buf, b2, e2, eta2, wc2).astype(np.float32)
+    s2 = draw(buf, 64, seed=2)
+    expect2 = expected_batch_rewards(buf, s2.index, eta2, wc2)
     assert torch.equal(s2.rewards, torch.from_numpy(expect2).reshape(-1, 1))
     # The very transitions sampled under η1 now carry η2's rewards.
-    again = buf.compute_rewards(b1, e1)
-    np.testing.assert_array_equal(again, hand_rewards(buf, b1, e1, eta2, wc2))
-    assert not np.allclose(again, hand_rewards(buf, b1, e1, eta1, wc1))
+    assert_stored_rewards(buf, s1.index, eta2, wc2)
+    assert not np.allclose(stored_rewards(buf, s1.index), hand_rewards(buf, s1.index, eta1,
+                                                                       wc1))
 
     # solve(..., timesteps=0) is the trainer's path: it relabels the buffer as well.
     solver.solve(eta1, wc1, 0, n_eval_episodes=1)
-    np.testing.assert_array_equal(buf.compute_rewards(b1, e1), hand_rewards(buf, b1, e1,
-                                                                            eta1, wc1))
+    assert_stored_rewards(buf, s1.index, eta1, wc1)
 
 
 def test_stored_features_are_those_of_the_next_state(filled):
     buf = filled.replay_buffer
-    n = buf.pos
-    states = buf.next_states[:n]  # [n, 2 envs, 2, 4]
-    obs_states = joint_obs_to_state(buf.next_observations[:n].astype(np.float64))
+    if isinstance(buf, FeatureReplayBuffer):  # [steps, 2 envs, ...]
+        n = buf.pos
+        fields = {k: getattr(buf, k)[:n] for k in ("next_states", "reward_features",
+                                                   "cost_features", "reward_scale")}
+        obs, next_obs = buf.observations[:n], buf.next_observations[:n]
+        terminal = buf.dones[:n] * (1 - buf.timeouts[:n])
+        assert buf.timeouts[:n].sum() > 0  # time limits are recorded as such
+    else:  # flat rows, step by step, env by env: the same [steps, 2 envs, ...] layout
+        n = buf.size
+
+        def per_step(x):
+            x = x.numpy() if isinstance(x, torch.Tensor) else x
+            return x[:n].reshape(n // 2, 2, *x.shape[1:])
+
+        fields = {k: per_step(getattr(buf, k)) for k in ("next_states", "reward_features",
+                                                         "cost_features", "reward_scale")}
+        obs, next_obs = per_step(buf.obs), per_step(buf.next_obs)
+        terminal = per_step(buf.dones)
+    states = fields["next_states"]  # [steps, 2 envs, 2, 4]
+    obs_states = joint_obs_to_state(next_obs.astype(np.float64))
     np.testing.assert_allclose(states, obs_states, atol=1e-5)  # obs are float32
     phi_c = CellOccupancyCostBasis()(states).numpy()
-    np.testing.assert_array_equal(buf.cost_features[:n], phi_c)  # indicators: exact
+    np.testing.assert_array_equal(fields["cost_features"], phi_c)  # indicators: exact
     phi_r = DoorLocationRewardBasis()(states).numpy()
-    np.testing.assert_allclose(buf.reward_features[:n], phi_r, rtol=1e-6)
-    # Timeouts (max_steps) are truncations, not absorbing terminals.
-    assert buf.timeouts[:n].sum() > 0
-    np.testing.assert_array_equal(buf.reward_scale[:n], 1.0)
+    np.testing.assert_allclose(fields["reward_features"], phi_r, rtol=1e-6)
+    # Timeouts (max_steps) are truncations, not absorbing terminals: 100 steps per env
+    # cut at 30, 60 and 90 (the next observation there is not the next step's).
+    assert terminal.sum() == 0
+    np.testing.assert_array_equal(fields["reward_scale"], 1.0)
+    cut = ~np.all(obs[1:] == next_obs[:-1], axis=-1)  # [steps - 1, 2 envs]
+    np.testing.assert_array_equal(cut.sum(0), [3, 3])
 
 
 def test_terminal_transition_gets_absorbing_value():
@@ -146,32 +268,51 @@ def test_sampling_before_weights_and_bad_weights_raise():
 
 
 # ---------------------------------------------------------------------------- solver
-def test_ent_coef_fixed_and_warm_start_keeps_networks_and_buffer():
-    solver = make_solver(seed=2, ent_coef=0.7)
-    model = solver.model
+@pytest.mark.parametrize("engine", ENGINES)
+def test_ent_coef_fixed_and_warm_start_keeps_networks_and_buffer(engine):
+    solver = make_solver(seed=2, ent_coef=0.7, engine=engine)
+
+    def held():  # what must survive a solve: the networks and the replay buffer
+        if engine == "sb3":
+            m = solver.engine.model
+            return (m, m.actor, m.critic, m.replay_buffer)
+        sac = solver.engine.sac
+        return (sac, sac.actor, sac.critic, solver.replay_buffer)
+
+    def stored():
+        return buf.pos if engine == "sb3" else buf.size  # SB3: rows of 2 envs
+
+    before, buf = held(), solver.replay_buffer
     eta, wc = random_weights(np.random.default_rng(1))
-    actor, critic, buf = model.actor, model.critic, model.replay_buffer
     solver.solve(eta, wc, 200, n_eval_episodes=1)
-    params1 = [p.detach().clone() for p in actor.parameters()]
-    assert solver.num_timesteps == 200 and buf.pos == 100
+    params1 = actor_params(solver)
+    assert solver.num_timesteps == 200 and stored() == (100 if engine == "sb3" else 200)
+    assert solver.n_updates > 0
 
     eta2, wc2 = random_weights(np.random.default_rng(2))
     solver.solve(eta2, wc2, 100, n_eval_episodes=1)
-    assert solver.model is model and model.actor is actor and model.critic is critic
-    assert model.replay_buffer is buf and buf.pos == 150  # appended, not reset
+    assert all(x is y for x, y in zip(held(), before, strict=True))
+    assert solver.replay_buffer is buf  # appended, not reset
+    assert stored() == (150 if engine == "sb3" else 300)
     assert solver.num_timesteps == 300  # counting went on
-    assert any(not torch.equal(a, p) for a, p in zip(params1, actor.parameters(), strict=True))
-    # The temperature never moved: no optimiser, the tensor still 0.7.
-    assert model.ent_coef_optimizer is None and model.log_ent_coef is None
-    assert float(model.ent_coef_tensor) == pytest.approx(0.7)
+    assert any(not torch.equal(a, p) for a, p in zip(params1, actor_params(solver),
+                                                     strict=True))
+    # The temperature never moved.
+    if engine == "sb3":  # no optimiser, the tensor still 0.7
+        model = solver.engine.model
+        assert model.ent_coef_optimizer is None and model.log_ent_coef is None
+        assert float(model.ent_coef_tensor) == pytest.approx(0.7)
+    else:  # a plain float of the update, never a parameter
+        assert solver.engine.sac.alpha == 0.7
     np.testing.assert_array_equal(buf.cost_weights, wc2)
 
 
-def test_solving_leaves_no_directories_in_the_temp_dir(tmp_path, monkeypatch):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_solving_leaves_no_directories_in_the_temp_dir(tmp_path, monkeypatch, engine):
     # SB3's default logger makes an SB3-<time> directory per learn() call.
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     monkeypatch.delenv("SB3_LOGDIR", raising=False)
-    solver = make_solver(seed=6)
+    solver = make_solver(seed=6, engine=engine)
     eta, wc = random_weights(np.random.default_rng(6))
     solver.solve(eta, wc, 60, n_eval_episodes=1)
     solver.solve(eta, wc, 60, n_eval_episodes=1)
@@ -188,7 +329,12 @@ def test_bad_arguments_raise_value_errors():
     with pytest.raises(ValueError, match="seed"):
         make_solver(seed=None)
     with pytest.raises(ValueError, match="sac_kwargs must not set 'ent_coef'"):
-        make_solver(sac_kwargs={"ent_coef": "auto"})
+        make_solver(sac_kwargs={"ent_coef": "auto"}, engine="sb3")
+    with pytest.raises(ValueError, match=r"sac_kwargs \['ent_coef', 'tau'\] are "
+                                         r"stable-baselines3 options; they need engine='sb3'"):
+        make_solver(sac_kwargs={"tau": 0.01, "ent_coef": "auto"})  # engine="lean", default
+    with pytest.raises(ValueError, match="engine must be one of"):
+        make_solver(engine="SB3")
     solver = make_solver()
     with pytest.raises(ValueError, match=r"eta must have shape \[5\]"):
         solver.solve(np.ones(4), np.ones(L_C), 0)
@@ -225,19 +371,22 @@ def test_feature_expectations_shapes_and_range():
     assert 0.0 <= sol.success_rate <= 1.0 and 0.0 <= sol.violation_rate <= 1.0
 
 
-def test_same_seed_same_numbers_and_caller_rng_untouched():
+@pytest.mark.parametrize("engine", ENGINES)
+def test_same_seed_same_numbers_and_caller_rng_untouched(engine):
     eta, wc = random_weights(np.random.default_rng(4))
     torch_state, np_state = torch.get_rng_state(), np.random.get_state()  # noqa: NPY002
     runs = []
     for seed in (7, 7, 8):
-        solver = make_solver(seed=seed)
+        solver = make_solver(seed=seed, engine=engine)
         sol = solver.solve(eta, wc, 150)
-        runs.append((sol, [p.detach().clone() for p in solver.model.actor.parameters()]))
+        assert solver.n_updates > 0
+        runs.append((sol, solver.policy_state()))  # actor, critics and target critics
     (a, pa), (b, pb), (c, pc) = runs
     assert torch.equal(a.reward_sums, b.reward_sums) and torch.equal(a.cost_sums, b.cost_sums)
-    assert all(torch.equal(x, y) for x, y in zip(pa, pb, strict=True))
+    assert pa.keys() == pb.keys() == pc.keys()
+    assert all(torch.equal(pa[k], pb[k]) for k in pa)
     assert not torch.equal(a.reward_sums, c.reward_sums)
-    assert not all(torch.equal(x, y) for x, y in zip(pa, pc, strict=True))
+    assert not all(torch.equal(pa[k], pc[k]) for k in pa)
     # The solver ran on its own streams: the caller's global generators did not move.
     assert torch.equal(torch.get_rng_state(), torch_state)
     after = np.random.get_state()  # noqa: NPY002
@@ -267,18 +416,25 @@ def demos():
     return make_drone_demonstrations(2, rng=np.random.default_rng(0))
 
 
-def test_log_likelihood_matches_sb3_density(demos):
-    solver = make_solver(seed=5)
+@pytest.mark.parametrize("engine", ENGINES)
+def test_log_likelihood_matches_sb3_density(demos, engine):
+    solver = make_solver(seed=5, engine=engine)
     per = solver.log_likelihood(demos, per_episode=True)
     assert per.shape == (2,) and torch.isfinite(per).all()
     assert solver.log_likelihood(demos) == pytest.approx(float(per.sum()))
     # Cross-check the first step (both drones fly) against SB3's own squashed density.
     obs = torch.from_numpy(joint_obs_from_states(demos.states[:, 0]))
     act = torch.tensor(demos.actions[:, 0].reshape(2, 4), dtype=torch.float32)
-    actor = solver.model.actor
     with torch.no_grad():
-        mean, log_std, _ = actor.get_action_dist_params(obs)
-        sb3 = actor.action_dist.proba_distribution(mean, log_std).log_prob(act)
+        if engine == "sb3":
+            actor = solver.engine.model.actor
+            mean, log_std, _ = actor.get_action_dist_params(obs)
+            dist = actor.action_dist
+        else:  # the lean actor's own parameters, SB3's density of them
+            scaled = torch.from_numpy(solver.engine.scale(obs.numpy()))
+            mean, log_std = (x[0] for x in solver.engine.sac.actor.dist_params(scaled[None]))
+            dist = SquashedDiagGaussianDistribution(4)
+        sb3 = dist.proba_distribution(mean, log_std).log_prob(act)
     # Demonstrations cut to their first step isolate that step's log-density.
     one = type(demos)(states=demos.states[:, :2], actions=demos.actions[:, :1],
                       lengths=np.ones(2, np.int64), dt=demos.dt)
@@ -321,38 +477,40 @@ def demo_transition_table(demos, solver: SACConstrainedSolver, eta: np.ndarray,
     return table
 
 
-def test_demonstrated_transitions_fill_their_share_of_each_batch(demos):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_demonstrated_transitions_fill_their_share_of_each_batch(demos, engine):
     """With demo_fraction 0.25, the last quarter of each batch are the learner's own
     demonstrated transitions, relabelled under the current weights (the last one of a
     pair terminal and absorbing); the rest come from the env as before."""
-    solver = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25)
+    solver = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25, engine=engine)
     rng = np.random.default_rng(4)
     solver.solve(*random_weights(rng), 200, n_eval_episodes=1)
     solver.set_demonstrations(demos)
     buf = solver.replay_buffer
-    np.random.seed(0)  # noqa: NPY002 (SB3's sampling stream; deterministic test)
-    for _ in range(2):  # new weights relabel the demonstrated transitions too
+    stored_obs = buf.observations if engine == "sb3" else buf.obs.numpy()
+    for seed in range(2):  # new weights relabel the demonstrated transitions too
         eta, wc = random_weights(rng)
         solver.set_weights(eta, wc)
         table = demo_transition_table(demos, solver, eta, wc)
-        batch = buf.sample(400)
-        assert batch.observations.shape == (400, 20) and batch.rewards.shape == (400, 1)
-        b, e = buf.last_sample_indices
-        assert len(b) == 300
-        np.testing.assert_array_equal(batch.observations[:300].numpy(), buf.observations[b, e])
+        batch = draw(buf, 400, seed=seed)
+        assert batch.obs.shape == (400, 20) and batch.rewards.shape == (400, 1)
+        assert n_rows(batch.index) == 300
+        np.testing.assert_array_equal(batch.obs[:300].numpy(), stored_obs[batch.index])
         np.testing.assert_allclose(batch.rewards[:300, 0].numpy(),
-                                   hand_rewards(buf, b, e, eta, wc), rtol=1e-5, atol=1e-4)
+                                   hand_rewards(buf, batch.index, eta, wc), rtol=1e-5,
+                                   atol=1e-4)
         done = []
         for i in range(300, 400):
-            key = (batch.observations[i].numpy().tobytes()
-                   + batch.next_observations[i].numpy().tobytes())
+            key = batch.obs[i].numpy().tobytes() + batch.next_obs[i].numpy().tobytes()
             reward, d, action = table[key]
             assert float(batch.rewards[i, 0]) == pytest.approx(reward, rel=1e-5, abs=1e-4)
             np.testing.assert_allclose(batch.actions[i].numpy(), action, atol=1e-6)
             done.append(float(batch.dones[i, 0]) == d)
         assert all(done)
+        assert any(d for _, d, _ in table.values())  # the pairs' last steps are terminal
     solver.set_demonstrations(None)
-    assert len(buf.sample(40).observations) == 40 and len(buf.last_sample_indices[0]) == 40
+    batch = draw(buf, 40)
+    assert len(batch.obs) == 40 and n_rows(batch.index) == 40
 
 
 def test_demonstrations_are_refused_when_malformed(demos):
@@ -376,62 +534,73 @@ def test_box_scaler_maps_the_bounds_onto_unit_box():
     torch.testing.assert_close(scaler(obs), expected)
     with pytest.raises(ValueError, match="finite"):
         BoxScaler(spaces.Box(low=-np.inf, high=np.inf, shape=(2,), dtype=np.float32))
-    solver = make_solver(scale_observations=True)
-    policy = solver.model.policy
+    solver = make_solver(scale_observations=True, engine="sb3")
+    policy = solver.engine.model.policy
     for extractor in (policy.actor.features_extractor, policy.critic.features_extractor,
                       policy.critic_target.features_extractor):
         assert isinstance(extractor, BoxScaler)
-    env_space = solver.vec_env.observation_space
+    env_space = solver.engine.vec_env.observation_space
     low = torch.as_tensor(env_space.low)[None]
     torch.testing.assert_close(policy.actor.features_extractor(low),
                                -torch.ones_like(low))  # every bound spans an interval
+    # The lean engine scales the same way, before storing and acting.
+    lean = make_solver(scale_observations=True).engine
+    high = torch.as_tensor(env_space.high)[None]
+    for bound in (low, high, torch.from_numpy(solver._env.observation_space.sample()[None])):
+        torch.testing.assert_close(torch.from_numpy(lean.scale(bound.numpy())),
+                                   policy.actor.features_extractor(bound))
     with pytest.raises(ValueError, match="scale_observations must be a bool"):
         make_solver(scale_observations="yes")
     with pytest.raises(ValueError, match="drop features_extractor_class"):
-        make_solver(scale_observations=True,
+        make_solver(scale_observations=True, engine="sb3",
                     sac_kwargs={"policy_kwargs": {"features_extractor_class": BoxScaler}})
 
 
 # ------------------------------------------------------------------ per-agent critics
-def hand_drone_rewards(buf: FeatureReplayBuffer, b: np.ndarray, e: np.ndarray,
-                       eta: np.ndarray, wc: np.ndarray) -> np.ndarray:
+def hand_drone_rewards(buf: Any, idx: Index, eta: np.ndarray, wc: np.ndarray) -> np.ndarray:
     """``[B, 2]`` each drone's reward from the bases' layout: its 2 reward features, its
     100 cells and half the proximity (the last cost feature)."""
-    phi_r = buf.reward_features[b, e].astype(np.float64)
-    phi_c = buf.cost_features[b, e].astype(np.float64)
+    phi_r = buf.reward_features[idx].astype(np.float64)
+    phi_c = buf.cost_features[idx].astype(np.float64)
     cols = []
     for g in range(2):
         own_r = slice(2 * g, 2 * g + 2)
         own_c = slice(100 * g, 100 * g + 100)
         cols.append(phi_r[:, own_r] @ eta[own_r] + eta[-1] * (
             phi_c[:, own_c] @ wc[own_c] + 0.5 * phi_c[:, 200] * wc[200]))
-    return buf.reward_scale[b, e][:, None] * np.stack(cols, 1)
+    return buf.reward_scale[idx][:, None] * np.stack(cols, 1)
 
 
-def test_per_agent_rewards_are_each_drones_share_of_the_joint_reward():
-    solver = make_solver(seed=3, learning_starts=10_000, per_agent_critics=True)
+@pytest.mark.parametrize("engine", ENGINES)
+def test_per_agent_rewards_are_each_drones_share_of_the_joint_reward(engine):
+    solver = make_solver(seed=3, learning_starts=10_000, per_agent_critics=True,
+                         engine=engine)
     rng = np.random.default_rng(8)
     eta, wc = random_weights(rng)
     wc[200] = 2.0  # make the shared proximity's split visible
     solver.solve(eta, wc, 200, n_eval_episodes=1)
     buf = solver.replay_buffer
-    batch = buf.sample(64)
-    b, e = buf.last_sample_indices
+    batch = draw(buf, 64)
+    idx = batch.index
     assert batch.rewards.shape == (64, 2)
-    expected = hand_drone_rewards(buf, b, e, eta, wc)
+    expected = hand_drone_rewards(buf, idx, eta, wc)
     np.testing.assert_allclose(batch.rewards.numpy(), expected, rtol=1e-6, atol=1e-6)
     # The columns add up to the joint reward the plain buffer samples.
-    np.testing.assert_allclose(buf.compute_rewards(b, e), hand_rewards(buf, b, e, eta, wc),
-                               rtol=1e-12)
+    if engine == "sb3":
+        joint = buf.compute_rewards(*idx)
+    else:  # the float64 columns the lean store casts to its float32 labels
+        joint = buf._relabel(buf.reward_features[idx], buf.cost_features[idx],
+                             buf.reward_scale[idx]).sum(-1)
+    np.testing.assert_allclose(joint, hand_rewards(buf, idx, eta, wc), rtol=1e-12)
     assert not np.allclose(expected[:, 0], expected[:, 1])
 
 
-def test_decomposed_sac_with_one_reward_column_matches_sb3_sac(filled):
+def test_decomposed_sac_with_one_reward_column_matches_sb3_sac(filled_sb3):
     """DecomposedSAC.train is our own loop: with one reward column it must make SB3's
     SAC updates (same batch, same random numbers)."""
-    sb3 = copy.deepcopy(filled.model)
-    mine = DecomposedSAC("MlpPolicy", filled.vec_env, learning_rate=3e-4, gamma=GAMMA,
-                         tau=0.005, batch_size=32, ent_coef=1.0, device="cpu",
+    sb3 = copy.deepcopy(filled_sb3.engine.model)
+    mine = DecomposedSAC("MlpPolicy", filled_sb3.engine.vec_env, learning_rate=3e-4,
+                         gamma=GAMMA, tau=0.005, batch_size=32, ent_coef=1.0, device="cpu",
                          policy_kwargs={"net_arch": [64, 64], "n_rewards": 1})
     mine.set_logger(Logger(folder=None, output_formats=[]))
     mine.policy.load_state_dict(sb3.policy.state_dict())
@@ -454,16 +623,23 @@ def test_decomposed_sac_with_one_reward_column_matches_sb3_sac(filled):
     assert not torch.equal(theirs["actor.mu.weight"], before["actor.mu.weight"])
 
 
-def test_per_agent_critics_train_one_column_per_drone():
-    solver = make_solver(per_agent_critics=True)
+@pytest.mark.parametrize("engine", ENGINES)
+def test_per_agent_critics_train_one_column_per_drone(engine):
+    solver = make_solver(per_agent_critics=True, engine=engine)
     eta, wc = random_weights(np.random.default_rng(2))
     solver.solve(eta, wc, 300, n_eval_episodes=1)
-    assert solver.model._n_updates > 0
-    batch = solver.replay_buffer.sample(16)
-    for q in solver.model.critic(batch.observations, batch.actions):
+    assert solver.n_updates > 0
+    batch = draw(solver.replay_buffer, 16)
+    if engine == "sb3":
+        qs = solver.engine.model.critic(batch.obs, batch.actions)
+    else:  # [1 learner, 2 critics, B, G]
+        critic = solver.engine.sac.critic
+        qs = critic.forward_with(critic.params, batch.obs[None], batch.actions[None])[0]
+    assert len(qs) == 2
+    for q in qs:
         assert q.shape == (16, 2) and torch.isfinite(q).all()
     with pytest.raises(ValueError, match="per_agent_critics must be a bool"):
-        make_solver(per_agent_critics=1)
+        make_solver(per_agent_critics=1, engine=engine)
 
     class Anonymous(torch.nn.Module):  # a basis that cannot say whose features are whose
         dim = 4
@@ -472,20 +648,36 @@ def test_per_agent_critics_train_one_column_per_drone():
             return torch.zeros(*np.shape(states)[:-2], 4, dtype=torch.float64)
 
     with pytest.raises(ValueError, match="agent_shares"):
-        make_solver(per_agent_critics=True, reward_basis=Anonymous())
-    with pytest.raises(ValueError, match="fixed ent_coef"):
-        DecomposedSAC("MlpPolicy", solver.vec_env, ent_coef="auto",
-                      policy_kwargs={"n_rewards": 2})
+        make_solver(per_agent_critics=True, reward_basis=Anonymous(), engine=engine)
+    if engine == "sb3":
+        with pytest.raises(ValueError, match="fixed ent_coef"):
+            DecomposedSAC("MlpPolicy", solver.engine.vec_env, ent_coef="auto",
+                          policy_kwargs={"n_rewards": 2})
 
 
 # ------------------------------------------------------------ keeping the best iterate
-def test_solve_keeping_best_ends_on_the_best_scored_chunk():
+def assert_same_networks(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
+    """Two :meth:`SACConstrainedSolver.policy_state` values are equal, tensor by tensor."""
+    assert a.keys() == b.keys()
+    for key, value in a.items():
+        assert torch.equal(value, b[key]), key
+
+
+# Seeds whose runs show what the tests below need (the engines draw differently).
+BEST_NOT_LAST = {"lean": 7, "sb3": 6}  # the best of 3 chunks is not the last
+CLONE_WINS = {"lean": 5, "sb3": 8}  # of 2 lineages, the clone's first chunk is the best
+THIRD_WINS = {"lean": 1, "sb3": 12}  # of 3 lineages, a chunk of the third is the best
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_solve_keeping_best_ends_on_the_best_scored_chunk(engine):
     eta, wc = random_weights(np.random.default_rng(4))
-    kept = make_solver(seed=6, learning_starts=50)
+    seed = BEST_NOT_LAST[engine]
+    kept = make_solver(seed=seed, learning_starts=50, engine=engine)
     best = kept.solve_keeping_best(eta, wc, 300, checks=3, n_eval_episodes=3,
                                    deterministic=True)
     # The same seed stepped by hand: chunk by chunk, with the same rollouts.
-    manual = make_solver(seed=6, learning_starts=50)
+    manual = make_solver(seed=seed, learning_starts=50, engine=engine)
     scores, states = [], []
     for steps in (100, 100, 100):
         manual._train(eta, wc, steps)
@@ -493,7 +685,7 @@ def test_solve_keeping_best_ends_on_the_best_scored_chunk():
         per = (sol.reward_sums.numpy() @ eta[:-1]
                + eta[-1] * (sol.cost_sums.numpy() @ wc))
         scores.append(float(per.mean()))
-        states.append(copy.deepcopy(manual.model.policy.state_dict()))
+        states.append(manual.policy_state())
     assert best.penalised_return()[0] == pytest.approx(max(scores), rel=1e-12)
     assert [c["timesteps"] for c in kept.last_checks] == [100, 200, 300]
     np.testing.assert_allclose([c["penalised_return"] for c in kept.last_checks], scores,
@@ -501,39 +693,39 @@ def test_solve_keeping_best_ends_on_the_best_scored_chunk():
     assert all(c["success_under_constraints"] is None for c in kept.last_checks)
     assert len(set(scores)) == 3  # the chunks' policies differ
     assert int(np.argmax(scores)) < 2  # (this seed) the best is not the last: restored
-    winner = states[int(np.argmax(scores))]
-    for key, value in kept.model.policy.state_dict().items():
-        assert torch.equal(value, winner[key]), key
+    assert_same_networks(kept.policy_state(), states[int(np.argmax(scores))])
     # One check is solve(): the same networks.
-    once, plain = make_solver(seed=6), make_solver(seed=6)
+    once, plain = (make_solver(seed=seed, engine=engine) for _ in range(2))
     once.solve_keeping_best(eta, wc, 150, checks=1, n_eval_episodes=1)
     plain.solve(eta, wc, 150, n_eval_episodes=1)
-    for key, value in plain.model.policy.state_dict().items():
-        assert torch.equal(value, once.model.policy.state_dict()[key]), key
+    assert plain.n_updates > 0
+    assert_same_networks(once.policy_state(), plain.policy_state())
     with pytest.raises(ValueError, match="checks must be a positive int"):
         kept.solve_keeping_best(eta, wc, 10, checks=0)
     with pytest.raises(ValueError, match="timesteps must be an int >= checks=4"):
         kept.solve_keeping_best(eta, wc, 3, checks=4)
 
 
-def test_solve_keeping_best_restarts_are_clones_scored_like_the_solver():
+@pytest.mark.parametrize("engine", ENGINES)
+def test_solve_keeping_best_restarts_are_clones_scored_like_the_solver(engine):
     """restarts=2: the solver's own lineage, then a clone made before any chunk (seeded
     from the solver's seed), stepped by hand; the best chunk of either is kept."""
     eta, wc = random_weights(np.random.default_rng(5))
-    kept, manual = make_solver(seed=8, learning_starts=50), make_solver(seed=8,
-                                                                        learning_starts=50)
+    seed = CLONE_WINS[engine]
+    kept, manual = (make_solver(seed=seed, learning_starts=50, engine=engine)
+                    for _ in range(2))
     for solver in (kept, manual):
         solver._train(eta, wc, 100)  # a state worth restarting from
     best = kept.solve_keeping_best(eta, wc, 100, checks=2, restarts=2, n_eval_episodes=3,
                                    deterministic=True)
-    twin = manual.clone(int(np.random.SeedSequence([8, 4]).generate_state(1)[0]))
+    twin = manual.clone(int(np.random.SeedSequence([seed, 4]).generate_state(1)[0]))
     scores, states = [], []
     for solver in (manual, twin):
         for _ in range(2):
             solver._train(eta, wc, 50)
             sol = solver.evaluate(3, deterministic=True)
             scores.append(sol.penalised_return()[0])
-            states.append(copy.deepcopy(solver.model.policy.state_dict()))
+            states.append(solver.policy_state())
     assert [(c["restart"], c["timesteps"]) for c in kept.last_checks] == [
         (0, 150), (0, 200), (1, 150), (1, 200)]
     np.testing.assert_allclose([c["penalised_return"] for c in kept.last_checks], scores,
@@ -542,9 +734,7 @@ def test_solve_keeping_best_restarts_are_clones_scored_like_the_solver():
     assert best.penalised_return()[0] == pytest.approx(max(scores), rel=1e-12)
     assert best.solver is kept
     assert int(np.argmax(scores)) == 2  # (this seed) the clone's: its networks adopted
-    winner = states[int(np.argmax(scores))]
-    for key, value in kept.model.policy.state_dict().items():
-        assert torch.equal(value, winner[key]), key
+    assert_same_networks(kept.policy_state(), states[int(np.argmax(scores))])
     with pytest.raises(ValueError, match="restarts must be a positive int"):
         kept.solve_keeping_best(eta, wc, 10, checks=1, restarts=0)
 
@@ -604,11 +794,12 @@ def test_grown_cells_fire_within_the_margin_of_each_cell():
             plain.dilated(bad)
 
 
-def test_a_penalty_basis_relabels_stored_and_demonstrated_transitions(demos):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_a_penalty_basis_relabels_stored_and_demonstrated_transitions(demos, engine):
     """With a penalty basis set, the cost part of every sampled reward is λ ω_c · φ of
     that basis at the transition's next state (env rows and demonstrated rows alike);
     set back to None, the stored features again."""
-    solver = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25)
+    solver = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25, engine=engine)
     rng = np.random.default_rng(4)
     solver.solve(*random_weights(rng), 200, n_eval_episodes=1)
     solver.set_demonstrations(demos)
@@ -616,36 +807,34 @@ def test_a_penalty_basis_relabels_stored_and_demonstrated_transitions(demos):
     eta, wc = random_weights(rng)
     solver.set_weights(eta, wc)
     buf.set_penalty_basis(grown)
-    np.random.seed(1)  # noqa: NPY002 (SB3's sampling stream; deterministic test)
-    batch = buf.sample(400)
-    b, e = buf.last_sample_indices
-    phi_r = buf.reward_features[b, e].astype(np.float64)
-    phi_grown = grown(buf.next_states[b, e]).numpy()
-    expect = buf.reward_scale[b, e] * (phi_r @ eta[:-1] + eta[-1] * (phi_grown @ wc))
+    batch = draw(buf, 400, seed=1)
+    idx = batch.index
+    phi_r = buf.reward_features[idx].astype(np.float64)
+    phi_grown = grown(buf.next_states[idx]).numpy()
+    expect = buf.reward_scale[idx] * (phi_r @ eta[:-1] + eta[-1] * (phi_grown @ wc))
     np.testing.assert_allclose(batch.rewards[:300, 0].numpy(), expect, rtol=1e-5, atol=1e-4)
-    assert not np.allclose(expect, hand_rewards(buf, b, e, eta, wc))  # the margin counts
+    assert not np.allclose(expect, hand_rewards(buf, idx, eta, wc))  # the margin counts
     grown_solver = copy.copy(solver)
     grown_solver.cost_basis = grown  # the demonstrated rows' rewards, from the pairs
     table = demo_transition_table(demos, grown_solver, eta, wc)
     for i in range(300, 400):
-        key = (batch.observations[i].numpy().tobytes()
-               + batch.next_observations[i].numpy().tobytes())
+        key = batch.obs[i].numpy().tobytes() + batch.next_obs[i].numpy().tobytes()
         assert float(batch.rewards[i, 0]) == pytest.approx(table[key][0], rel=1e-5, abs=1e-4)
     buf.set_penalty_basis(None)
-    buf.sample(64)
-    b, e = buf.last_sample_indices
-    np.testing.assert_array_equal(buf.compute_rewards(b, e), hand_rewards(buf, b, e, eta, wc))
+    again = draw(buf, 64, seed=2)
+    assert_stored_rewards(buf, again.index, eta, wc)
     with pytest.raises(ValueError, match="penalty_basis has 4 features"):
         buf.set_penalty_basis(DoorLocationRewardBasis())
 
 
-def test_solve_keeping_best_trains_on_the_penalty_basis_for_that_solve_only():
+@pytest.mark.parametrize("engine", ENGINES)
+def test_solve_keeping_best_trains_on_the_penalty_basis_for_that_solve_only(engine):
     """The last solve with a penalty basis: the chunks train on it (another policy than
     without), the scores keep the cost basis, and the buffer is back on φ_c after."""
     eta, wc = random_weights(np.random.default_rng(4))
     grown = CellOccupancyCostBasis().dilated(0.4)
-    with_margin, plain = make_solver(seed=6, learning_starts=50), make_solver(seed=6,
-                                                                              learning_starts=50)
+    with_margin, plain = (make_solver(seed=6, learning_starts=50, engine=engine)
+                          for _ in range(2))
     seen = []
     original = with_margin.replay_buffer._penalty_features
 
@@ -657,25 +846,31 @@ def test_solve_keeping_best_trains_on_the_penalty_basis_for_that_solve_only():
     a = with_margin.solve_keeping_best(eta, wc, 200, checks=2, n_eval_episodes=2,
                                        penalty_basis=grown)
     b = plain.solve_keeping_best(eta, wc, 200, checks=2, n_eval_episodes=2)
-    assert seen and all(basis is grown for basis in seen)
+    if engine == "sb3":  # relabelled at every sample, all of them during the solve
+        assert seen and all(basis is grown for basis in seen)
+    else:  # labelled at set_weights and add, during the solve; then relabelled on φ_c
+        assert len(seen) > 2 and all(basis is grown for basis in seen[:-1])
+        assert seen[-1] is None
     assert with_margin.replay_buffer.penalty_basis is None
+    buf = with_margin.replay_buffer
+    assert_stored_rewards(buf, filled_rows(buf), eta, wc)  # φ_c's rewards again
     assert a.cost_sums.shape == b.cost_sums.shape  # estimates in the cost basis
-    differ = [not torch.equal(x, y) for x, y in zip(with_margin.model.policy.state_dict().values(),
-                                                      plain.model.policy.state_dict().values(),
-                                                      strict=True)]
-    assert any(differ)
+    mine, theirs = with_margin.policy_state(), plain.policy_state()
+    assert mine.keys() == theirs.keys()
+    assert any(not torch.equal(mine[k], theirs[k]) for k in mine)
 
 
 def test_buffer_state_without_demonstrated_states_loads_and_refuses_a_margin(demos):
-    """A state saved before the demonstrations' next states were kept still loads; a
-    penalty basis then asks for the demonstrations again (naming the fix)."""
-    solver = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25)
+    """A state saved before the demonstrations' next states were kept (SB3's buffer: the
+    lean store's states always hold them) still loads; a penalty basis then asks for
+    the demonstrations again (naming the fix)."""
+    solver = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25, engine="sb3")
     solver.solve(*random_weights(np.random.default_rng(4)), 100, n_eval_episodes=1)
     solver.set_demonstrations(demos)
     sd = solver.replay_buffer.state_dict()
     assert "next_states" in sd["demo"]
     del sd["demo"]["next_states"]
-    twin = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25)
+    twin = make_solver(seed=3, learning_starts=10_000, demo_fraction=0.25, engine="sb3")
     twin.replay_buffer.load_state_dict(sd)
     with pytest.raises(ValueError, match="call set_demonstrations again"):
         twin.replay_buffer.set_penalty_basis(CellOccupancyCostBasis().dilated(0.2))
@@ -710,12 +905,14 @@ def test_an_actor_drives_the_evaluation_as_the_policy_would():
     assert all(len(eps) == n[0] == m[0] for n, m, eps in seen)
 
 
-def test_progress_bars_count_every_step_and_change_no_number(monkeypatch):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_progress_bars_count_every_step_and_change_no_number(monkeypatch, engine):
     """The warm-up's and the planned evaluation's bars (solve/solve_keeping_best/
     evaluate with progress=...) reach their totals and leave the networks, the scores
     and the rollouts those of the same calls without them."""
     import contextlib
 
+    from dicrl_torch.solvers.sac import lineages as lineages_module
     from dicrl_torch.solvers.sac import solver as solver_module
 
     bars = []
@@ -735,10 +932,11 @@ def test_progress_bars_count_every_step_and_change_no_number(monkeypatch):
         bars.append(Recorder(label, total) if label is not None else None)
         yield bars[-1]
 
-    monkeypatch.setattr(solver_module, "_step_bar", recording_bar)
+    # the bar of solve() and that of the lineages (solver.py imports it by name)
+    monkeypatch.setattr(lineages_module, "step_bar", recording_bar)
+    monkeypatch.setattr(solver_module, "step_bar", recording_bar)
     eta, wc = random_weights(np.random.default_rng(9))
-    plain, shown = make_solver(seed=9, learning_starts=50), make_solver(seed=9,
-                                                                        learning_starts=50)
+    plain, shown = (make_solver(seed=9, learning_starts=50, engine=engine) for _ in range(2))
     a = plain.solve(eta, wc, 120, n_eval_episodes=2)
     b = shown.solve(eta, wc, 120, n_eval_episodes=2, progress="warm-up")
     torch.testing.assert_close(a.reward_sums, b.reward_sums, rtol=0, atol=0)
@@ -749,8 +947,8 @@ def test_progress_bars_count_every_step_and_change_no_number(monkeypatch):
         ("warm-up", 120, 120), ("lineages", 120, 120)]
     assert [c["penalised_return"] for c in plain.last_checks] == \
         [c["penalised_return"] for c in shown.last_checks]
-    for key, value in plain.model.policy.state_dict().items():
-        assert torch.equal(value, shown.model.policy.state_dict()[key]), key
+    assert plain.n_updates > 0
+    assert_same_networks(plain.policy_state(), shown.policy_state())
     x = plain.evaluate(3, true_game=True, rng=np.random.default_rng(1), trajectories=True)
     y = shown.evaluate(3, true_game=True, rng=np.random.default_rng(1), trajectories=True,
                        progress="planning")
@@ -758,7 +956,8 @@ def test_progress_bars_count_every_step_and_change_no_number(monkeypatch):
         np.testing.assert_array_equal(p, q)
 
 
-def test_lineages_split_over_equal_solvers_give_solve_keeping_best():
+@pytest.mark.parametrize("engine", ENGINES)
+def test_lineages_split_over_equal_solvers_give_solve_keeping_best(engine):
     """Two equal solvers train lineages {0, 1} and {2} of one solve_keeping_best; the
     first adopts the best of all three (the other's read back through torch.save with
     weights_only) and is then the solver that trained all three itself: policy, scores,
@@ -766,7 +965,8 @@ def test_lineages_split_over_equal_solvers_give_solve_keeping_best():
     import io
 
     eta, wc = random_weights(np.random.default_rng(11))
-    whole, first, second = (make_solver(seed=12, learning_starts=50) for _ in range(3))
+    whole, first, second = (make_solver(seed=THIRD_WINS[engine], learning_starts=50,
+                                        engine=engine) for _ in range(3))
     for solver in (whole, first, second):
         solver._train(eta, wc, 60)
     kwargs = dict(checks=2, restarts=3, n_eval_episodes=2, deterministic=True)
@@ -783,8 +983,7 @@ def test_lineages_split_over_equal_solvers_give_solve_keeping_best():
     top = max(whole.last_checks, key=lambda c: c["penalised_return"])
     assert adopted.restart == top["restart"] == 2  # (this seed) the other process's
     assert adopted.key[1] == pytest.approx(best.penalised_return()[0], rel=0, abs=0)
-    for key, value in whole.model.policy.state_dict().items():
-        assert torch.equal(value, first.model.policy.state_dict()[key]), key
+    assert_same_networks(whole.policy_state(), first.policy_state())
     a, b = whole.solve(eta, wc, 40, n_eval_episodes=2), first.solve(eta, wc, 40,
                                                                     n_eval_episodes=2)
     torch.testing.assert_close(a.reward_sums, b.reward_sums, rtol=0, atol=0)

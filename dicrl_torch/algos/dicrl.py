@@ -318,13 +318,23 @@ class DICRL:
         self.solves += 1
         return self.learner_model.solve(i, eta, cost_weights)
 
+    def solve_all(self, eta: torch.Tensor, cost_weights: torch.Tensor) -> list[ModelSolution]:
+        """Every local learner's policy, learner ``i`` for ``η`` ``eta[i]`` and ``ω_c``
+        ``cost_weights[i]``; through the model's ``solve_all`` where it has one (its
+        learners solved together, the same numbers)."""
+        solve_all = getattr(self.learner_model, "solve_all", None)
+        if not callable(solve_all):
+            return [self.solve(i, eta[i], cost_weights[i]) for i in range(len(eta))]
+        self.solves += len(eta)
+        return solve_all(eta, cost_weights)
+
     # ------------------------------------------------------------------ inner process
     def _scaled_gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor,
                           k: int) -> torch.Tensor:
         """``m^[v] ∇G^[v](η^[v]; ω_c)`` of every local learner: ``[n, p]``."""
-        grads = torch.stack([
-            dual_gradient(self.solve(i, eta[i], cost_weights), st, cost_weights)
-            for i, st in enumerate(self.stats)])
+        solutions = self.solve_all(eta, cost_weights.expand(len(self.stats), -1))
+        grads = torch.stack([dual_gradient(sol, st, cost_weights)
+                             for sol, st in zip(solutions, self.stats, strict=True)])
         for cb in self._active:
             cb.on_inner_gradients(self, learners=self._log_rows,
                                   step=self.state.outer_iteration * self.K + k,
@@ -413,9 +423,8 @@ class DICRL:
 
         # Local gradient approximation at each learner's own (ω_c, η̄).
         lga = torch.stack([
-            local_gradient(self.solve(i, st.eta_bar[i], st.cost_weights[i]), self.stats[i],
-                           float(st.eta_bar[i, -1]))
-            for i in range(len(self.local))])
+            local_gradient(sol, self.stats[i], float(st.eta_bar[i, -1]))
+            for i, sol in enumerate(self.solve_all(st.eta_bar, st.cost_weights))])
         self._check_finite("The local gradient (LGA)", lga)
         W_bar = self.outer_schedule(n)
         if st.tracker is None:

@@ -91,6 +91,10 @@ class LearnerModel(Protocol):
         """``Σ_ζ Σ_t γ^t ln π_{η, ω_c}(a_t | s_t)`` of ``demos``."""
         ...
 
+    # Optional: ``solve_all(etas [n, l_r + 1], cost_weights [n, l_c]) -> list`` solves
+    # every local learner at once, with the numbers of n calls of solve (the trainer
+    # uses it where it has one; SACLearnerModel trains its learners as one ensemble).
+
     def describe(self) -> str:
         """Shapes and settings a checkpoint of a trainer over this model must match."""
         ...
@@ -288,6 +292,19 @@ class SACLearnerModel:
               ) -> SACSolution:
         return self.inner_solver(learner).solve(eta, cost_weights, self.timesteps,
                                                 n_eval_episodes=self.n_eval_episodes)
+
+    def solve_all(self, etas: torch.Tensor, cost_weights: torch.Tensor) -> list[SACSolution]:
+        """Every local learner's :meth:`solve` (``etas`` ``[n, l_r + 1]``, ``cost_weights``
+        ``[n, l_c]``), their SAC trained as one ensemble: the same numbers as solving
+        them one by one (:meth:`SACConstrainedSolver.solve_together`)."""
+        from dicrl_torch.solvers.sac import SACConstrainedSolver
+
+        if len(etas) != len(self.solvers) or len(cost_weights) != len(self.solvers):
+            raise ValueError(f"solve_all needs one η and one ω_c per local learner "
+                             f"({len(self.solvers)}), got {len(etas)} and {len(cost_weights)}.")
+        return SACConstrainedSolver.solve_together(self.solvers, etas, cost_weights,
+                                                   self.timesteps,
+                                                   n_eval_episodes=self.n_eval_episodes)
 
     def log_likelihood(self, learner: int, eta: torch.Tensor, cost_weights: torch.Tensor,
                        demos: Any) -> float:

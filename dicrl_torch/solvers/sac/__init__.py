@@ -62,11 +62,22 @@ against the env's (the message names the field and the fix).
 Design choices, and why
 -----------------------
 
-- **No stale rewards.** :class:`FeatureReplayBuffer` stores, per transition, the feature
-  vectors ``φ_r(s') [l_r]``, ``φ_c(s') [l_c]`` (and the next state ``[N, d_s]``), never
-  a reward. :meth:`FeatureReplayBuffer.sample` computes the rewards from the weights set
-  last by :meth:`FeatureReplayBuffer.set_weights`, so after ``η`` or ``ω_c`` change the
-  whole buffer is relabelled at once and the old experience stays valid data.
+- **Two engines, one algorithm.** The default ``engine="lean"``
+  (:mod:`~dicrl_torch.solvers.sac.lean`) collects from the game's own batched env
+  (:mod:`dicrl_torch.envs.vector`) and updates networks whose layers are one batched
+  product each (:mod:`~dicrl_torch.solvers.sac.networks`,
+  :mod:`~dicrl_torch.solvers.sac.update`); ``engine="sb3"``
+  (:mod:`~dicrl_torch.solvers.sac.sb3_engine`) is stable-baselines3's loop with the same
+  settings, kept as the reference the lean one is tested and benchmarked against
+  (``python -m dicrl_torch.bench sac``). Their random draws differ, not their
+  arithmetic.
+- **No stale rewards.** The replay buffers (:class:`TransitionStore`,
+  :class:`FeatureReplayBuffer`) store, per transition, the feature vectors ``φ_r(s')
+  [l_r]``, ``φ_c(s') [l_c]`` (and the next state ``[N, d_s]``), never a reward. Rewards
+  are computed from the weights set last by ``set_weights``
+  (:class:`~dicrl_torch.solvers.sac.labels.RewardLabels`), so after ``η`` or ``ω_c``
+  change the whole buffer is relabelled at once and the old experience stays valid
+  data.
 - **Fixed temperature.** The MCE model is the soft-Bellman policy at temperature 1
   (``π ∝ exp(Q_soft)``, as the grid solver's ``temperature=1``), whose SAC form is the
   objective ``E Σ γ^t (r + α H(π(·|s_t)))`` with ``α = ent_coef = 1``. The temperature
@@ -88,15 +99,16 @@ Design choices, and why
 - **Features of the next state.** The reward of transition ``(s_t, a_t, s_{t+1})`` is
   that of ``s_{t+1}``, so the action is credited at once; the discounted sums are
   ``Σ_t γ^t φ(s_{t+1})`` (the initial state's features do not depend on the policy).
-- **Private randomness.** SB3 draws from the global torch / numpy / ``random``
-  generators (network init, buffer sampling, action sampling). The solver owns its
-  own copies of those streams, seeded from ``seed``, and swaps them in only while SB3
-  runs (:meth:`SACConstrainedSolver._private_rng`), restoring the caller's state
-  afterwards: same seed, same numbers, and no global seeding seen from outside.
+- **Private randomness.** The lean engine draws only from generators of its own, seeded
+  from ``seed``. SB3 draws from the global torch / numpy / ``random`` generators
+  (network init, buffer sampling, action sampling); the SB3 engine owns its own copies
+  of those streams and swaps them in only while SB3 runs, restoring the caller's state
+  afterwards. Either way: same seed, same numbers, and no global seeding seen from
+  outside.
   Evaluation rollouts use an explicit ``torch.Generator`` and ``np.random.Generator``.
 - **Exact, pickle-free state.** :meth:`SACConstrainedSolver.state_dict` holds everything
-  the next ``learn()``, evaluation or likelihood reads (networks, optimisers, SB3's
-  counters, the replay buffer, the envs in mid-episode, every random stream) as tensors
+  the next training step, evaluation or likelihood reads (networks, optimisers, the
+  engine's counters, the replay buffer, the envs in mid-episode, every random stream) as tensors
   and plain python data: ``torch.load(..., weights_only=True)`` reads it back, and a
   fresh solver built with the same arguments then continues bit for bit as if never
   interrupted. SB3's own ``save`` pickles and is not used.
@@ -104,11 +116,20 @@ Design choices, and why
 The package, by responsibility:
 
 - :mod:`~dicrl_torch.solvers.sac.solver`: :class:`SACConstrainedSolver` (training,
-  evaluation, likelihood, clones, exact ``state_dict`` / ``load_state_dict``).
+  evaluation, likelihood, clones, exact ``state_dict`` / ``load_state_dict``);
+  :mod:`~dicrl_torch.solvers.sac.lineages`: its chunked, best-keeping training
+  (:class:`Lineage`).
+- :mod:`~dicrl_torch.solvers.sac.lean` (:class:`LeanEngine`: the loop),
+  :mod:`~dicrl_torch.solvers.sac.networks`, :mod:`~dicrl_torch.solvers.sac.update`
+  (:class:`EnsembleSAC`: the update of one or several learners),
+  :mod:`~dicrl_torch.solvers.sac.replay` (:class:`TransitionStore`) and
+  :mod:`~dicrl_torch.solvers.sac.env_list` (any joint env as a vector env): the lean
+  engine. :mod:`~dicrl_torch.solvers.sac.sb3_engine`: the SB3 one.
 - :mod:`~dicrl_torch.solvers.sac.protocol`: the checks of the joint-env protocol and
   of the demonstrations against it.
-- :mod:`~dicrl_torch.solvers.sac.buffer`: :class:`FeatureReplayBuffer` (features stored,
-  rewards relabelled on sampling, demonstrations mixed in).
+- :mod:`~dicrl_torch.solvers.sac.labels`: the relabelling and demonstrated transitions
+  both buffers share; :mod:`~dicrl_torch.solvers.sac.buffer`: :class:`FeatureReplayBuffer`
+  (SB3's buffer with features stored, rewards relabelled on sampling).
 - :mod:`~dicrl_torch.solvers.sac.solution`: :class:`SACSolution` (rollout estimates).
 - :mod:`~dicrl_torch.solvers.sac.features`: the bases' features and agent shares,
   :func:`discounted_demo_feature_sums`, :class:`BoxScaler`.
@@ -125,9 +146,13 @@ models in :mod:`dicrl_torch.algos.models`.
 from dicrl_torch.solvers.sac.buffer import FeatureReplayBuffer
 from dicrl_torch.solvers.sac.decomposed import DecomposedCritic, DecomposedSAC, DecomposedSACPolicy
 from dicrl_torch.solvers.sac.features import BoxScaler, discounted_demo_feature_sums
+from dicrl_torch.solvers.sac.lean import LeanEngine
 from dicrl_torch.solvers.sac.protocol import JointEnvSpec
+from dicrl_torch.solvers.sac.replay import TransitionStore
+from dicrl_torch.solvers.sac.sb3_engine import SB3Engine
 from dicrl_torch.solvers.sac.solution import SACSolution
 from dicrl_torch.solvers.sac.solver import STATE_FORMAT, Lineage, SACConstrainedSolver
+from dicrl_torch.solvers.sac.update import EnsembleSAC
 
 __all__ = [
     "STATE_FORMAT",
@@ -135,10 +160,14 @@ __all__ = [
     "DecomposedCritic",
     "DecomposedSAC",
     "DecomposedSACPolicy",
+    "EnsembleSAC",
     "FeatureReplayBuffer",
     "JointEnvSpec",
+    "LeanEngine",
     "Lineage",
     "SACConstrainedSolver",
     "SACSolution",
+    "SB3Engine",
+    "TransitionStore",
     "discounted_demo_feature_sums",
 ]

@@ -5,21 +5,14 @@ See :mod:`dicrl_torch.solvers.sac` for the design (docs/design.md §5, §7).
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import math
-from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
-from stable_baselines3 import SAC
-from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.logger import Logger
-from stable_baselines3.common.vec_env import DummyVecEnv
 from torch import nn
 
 from dicrl_torch.features.base import EnvKind
@@ -30,8 +23,9 @@ from dicrl_torch.solvers.sac.checks import (
     _is_int,
     _weights,
 )
-from dicrl_torch.solvers.sac.decomposed import DecomposedSAC
-from dicrl_torch.solvers.sac.features import BoxScaler, _basis_dim, _features
+from dicrl_torch.solvers.sac.features import _basis_dim, _features
+from dicrl_torch.solvers.sac.lean import LeanEngine, learn_together
+from dicrl_torch.solvers.sac.lineages import Lineage, LineageTraining, step_bar
 from dicrl_torch.solvers.sac.protocol import (
     as_continuous,
     check_joint_env,
@@ -40,32 +34,33 @@ from dicrl_torch.solvers.sac.protocol import (
     step_fields,
 )
 from dicrl_torch.solvers.sac.randomness import (
-    capture_global_rng,
     generator_state_dict,
-    global_rng_from_state_dict,
-    global_rng_state_dict,
     restore_generator,
-    restore_global_rng,
-    seed_global_rng,
 )
+from dicrl_torch.solvers.sac.replay import TransitionStore
+from dicrl_torch.solvers.sac.sb3_engine import SB3Engine
 from dicrl_torch.solvers.sac.solution import SACSolution
 from dicrl_torch.solvers.sac.state import (
-    check_model_state,
     check_tensor,
-    check_vec_env_state,
-    load_model_state_dict,
-    load_vec_env_state_dict,
-    model_state_dict,
     optional_array,
     optional_tensor,
     plain,
-    vec_env_state_dict,
 )
 
 __all__ = ["STATE_FORMAT", "Lineage", "SACConstrainedSolver"]
 
-STATE_FORMAT = "dicrl_torch.SACConstrainedSolver/2"
+STATE_FORMAT = "dicrl_torch.SACConstrainedSolver/3"
 """Tag of :meth:`SACConstrainedSolver.state_dict`'s layout."""
+_SB3_STATE_FORMAT = "dicrl_torch.SACConstrainedSolver/2"  # before the engines: SB3's only
+ENGINES = ("lean", "sb3")
+
+
+def _from_sb3_format(sd: dict[str, Any]) -> dict[str, Any]:
+    """A state of the SB3-only layout as the current one (its engine: ``sb3``)."""
+    engine = {k: sd[k] for k in ("global_rng", "model", "replay_buffer", "envs")}
+    rest = {k: v for k, v in sd.items() if k not in engine}
+    return {**rest, "format": STATE_FORMAT, "settings": {"engine": "sb3", **sd["settings"]},
+            "engine": engine}
 
 
 # Settings that states saved before they existed lack, with the value those states had.
@@ -74,42 +69,7 @@ _LATER_SETTINGS = {"demo_bc": 0.0, "demo_value_bound": False, "split_cost_critic
 ESTIMATE_ACTIONS = ("sampled", "mean")
 
 
-@dataclass
-class Lineage:
-    """One lineage of :meth:`SACConstrainedSolver.train_lineages`: its best chunk.
-
-    Attributes:
-        restart: the lineage's index (0: the solver itself).
-        key: the chunk's rank ``(success, penalised return, -restart, -chunk)``; the
-            highest is adopted.
-        checks: every chunk's ``{"restart", "timesteps", "penalised_return",
-            "success_under_constraints"}``.
-        policy_state: the SB3 policy's ``state_dict`` after the best chunk.
-        solution: that chunk's :class:`SACSolution` (None when read back from a file).
-    """
-
-    restart: int
-    key: tuple[float, float, int, int]
-    checks: list[dict]
-    policy_state: dict[str, torch.Tensor]
-    solution: SACSolution | None = None
-
-    def state(self) -> dict[str, Any]:
-        """Tensors and plain values only (for ``torch.save`` and a ``weights_only``
-        load); the solution stays behind."""
-        return {"restart": self.restart, "key": list(self.key), "checks": self.checks,
-                "policy_state": self.policy_state}
-
-    @classmethod
-    def from_state(cls, state: dict[str, Any]) -> Lineage:
-        """The lineage of :meth:`state` (without its solution)."""
-        s, objective, r, k = state["key"]
-        return cls(restart=int(state["restart"]), key=(float(s), float(objective), int(r),
-                                                        int(k)),
-                   checks=list(state["checks"]), policy_state=dict(state["policy_state"]))
-
-
-class SACConstrainedSolver:
+class SACConstrainedSolver(LineageTraining):
     """Entropy-regularised SAC on ``r = ω_r·φ_r + λ ω_c·φ_c``, warm-started across calls.
 
     Example (any PettingZoo ``ParallelEnv`` with ``Box`` actions)::
@@ -173,7 +133,15 @@ class SACConstrainedSolver:
             ``per_agent_critics``); their sum is the joint soft Q, so the fixed point is
             plain SAC's. A large penalty then no longer shares one regression with the
             reward.
-        sac_kwargs: further keyword arguments for ``stable_baselines3.SAC``.
+        sac_kwargs: further keyword arguments for ``stable_baselines3.SAC`` (``engine="sb3"``
+            only).
+        engine: ``"lean"`` (default: :class:`~dicrl_torch.solvers.sac.lean.LeanEngine`,
+            the fast loop) or ``"sb3"`` (:class:`~dicrl_torch.solvers.sac.sb3_engine.SB3Engine`,
+            stable-baselines3's loop, the reference the lean one is tested against). The
+            same settings give the same algorithm; their random draws differ.
+        batched_env: with the lean engine, step the game's own batched env
+            (:mod:`dicrl_torch.envs.vector`) when its joint env offers one; False steps
+            ``n_envs`` joint envs one by one (the same transitions, slower).
     """
 
     # The kind of environment the solver serves: "continuous" (as its bases,
@@ -211,6 +179,8 @@ class SACConstrainedSolver:
         per_agent_critics: bool = False,
         split_cost_critic: bool = False,
         sac_kwargs: dict[str, Any] | None = None,
+        engine: str = "lean",
+        batched_env: bool = True,
     ) -> None:
         self.demo_fraction = _check_fraction(demo_fraction, "demo_fraction")
         if isinstance(demo_bc, bool) or not isinstance(demo_bc, int | float | np.floating) \
@@ -274,88 +244,43 @@ class SACConstrainedSolver:
         self._obs_low = self.spec.observation_space.low
         self._obs_high = self.spec.observation_space.high
 
-        self._rng_state: tuple[Any, ...] | None = None
         self._eval_rng = np.random.default_rng([self.seed, 1])
         self._eval_gen = torch.Generator(device=self.device)
         self._eval_gen.manual_seed(int(np.random.default_rng([self.seed, 2]).integers(2**62)))
         self._eval_envs: dict[bool, list[gym.Env]] = {False: [], True: []}
 
-        kwargs = dict(sac_kwargs or {})
-        for key in ("ent_coef", "replay_buffer_class", "seed", "gamma"):
-            if key in kwargs:
-                raise ValueError(
-                    f"sac_kwargs must not set {key!r}: the solver fixes it; use the solver's "
-                    f"own argument instead."
-                )
         if not isinstance(scale_observations, bool):
             raise ValueError(f"scale_observations must be a bool, got {scale_observations!r}.")
         self.scale_observations = scale_observations
-        policy_kwargs = {"net_arch": list(net_arch), **kwargs.pop("policy_kwargs", {})}
-        if scale_observations:
-            if "features_extractor_class" in policy_kwargs:
-                raise ValueError("scale_observations=True sets the features extractor; drop "
-                                 "features_extractor_class from sac_kwargs['policy_kwargs'].")
-            policy_kwargs["features_extractor_class"] = BoxScaler
         if not isinstance(per_agent_critics, bool):
             raise ValueError(f"per_agent_critics must be a bool, got {per_agent_critics!r}.")
         self.per_agent_critics = per_agent_critics
-        algorithm = SAC
         if not isinstance(split_cost_critic, bool):
             raise ValueError(f"split_cost_critic must be a bool, got {split_cost_critic!r}.")
         self.split_cost_critic = split_cost_critic
-        # SB3's SAC has no reward columns and no demonstration terms
-        if per_agent_critics or split_cost_critic or self.demo_bc > 0 or self.demo_value_bound:
-            algorithm = DecomposedSAC
-            policy_kwargs["n_rewards"] = ((self.spec.n_agents if per_agent_critics else 1)
-                                          * (2 if split_cost_critic else 1))
-        # Even building the vec env draws from the global numpy stream (SB3): all of it
-        # happens on the solver's private streams.
-        with self._private_rng():
-            self.vec_env = make_vec_env(env_factory, n_envs=self.n_envs,
-                                        env_kwargs={"constrained": False},
-                                        vec_env_cls=DummyVecEnv)
-            self.vec_env.seed(self.seed)  # used at the first reset, inside learn()
-            self.model = algorithm(
-                "MlpPolicy", self.vec_env, learning_rate=learning_rate,
-                buffer_size=buffer_size, learning_starts=learning_starts,
-                batch_size=batch_size, tau=tau, gamma=self.gamma, train_freq=train_freq,
-                gradient_steps=gradient_steps, ent_coef=self.ent_coef,
-                replay_buffer_class=FeatureReplayBuffer,
-                replay_buffer_kwargs={"reward_basis": reward_basis, "cost_basis": cost_basis,
-                                      "gamma": self.gamma, "absorbing": self.absorbing,
-                                      "feature_dtype": feature_dtype,
-                                      "state_shape": self.spec.state_shape,
-                                      "per_agent": per_agent_critics,
-                                      "split_cost": split_cost_critic},
-                policy_kwargs=policy_kwargs, device=self.device, seed=None, verbose=0,
-                **kwargs,
-            )
-        self.model.demo_bc, self.model.demo_value_bound = self.demo_bc, self.demo_value_bound
-        # Without a logger of its own, every learn() call makes SB3 create an empty
-        # SB3-<time> directory in the system temp dir: thousands per table2 run.
-        self.model.set_logger(Logger(folder=None, output_formats=[]))
-        # Random warm-up actions come from the action space's own generator.
-        self.model.action_space.seed(self.seed)
+        if engine not in ENGINES:
+            raise ValueError(f"engine must be one of {list(ENGINES)} (lean: the fast loop; "
+                             f"sb3: stable-baselines3's, the reference), got {engine!r}.")
+        if engine == "lean" and sac_kwargs:
+            raise ValueError(f"sac_kwargs {sorted(sac_kwargs)} are stable-baselines3 options; "
+                             f"they need engine='sb3'.")
+        common = dict(env_factory=env_factory, spec=self.spec, reward_basis=reward_basis,
+                      cost_basis=cost_basis, seed=self.seed, n_envs=self.n_envs,
+                      device=self.device, gamma=self.gamma, ent_coef=self.ent_coef,
+                      absorbing=self.absorbing, learning_rate=learning_rate,
+                      buffer_size=buffer_size, batch_size=batch_size,
+                      learning_starts=learning_starts, tau=tau, train_freq=train_freq,
+                      gradient_steps=gradient_steps, net_arch=net_arch,
+                      feature_dtype=feature_dtype, scale_observations=scale_observations,
+                      per_agent_critics=per_agent_critics,
+                      split_cost_critic=split_cost_critic, demo_bc=self.demo_bc,
+                      demo_value_bound=self.demo_value_bound)
+        self.engine = (SB3Engine(**common, sac_kwargs=sac_kwargs) if engine == "sb3"
+                       else LeanEngine(**common, batched_env=batched_env))
         self.eta: np.ndarray | None = None
         self.cost_weights: np.ndarray | None = None
         self.last_checks: list[dict[str, Any]] = []
         """Per chunk of the last :meth:`solve_keeping_best`: its scores."""
-
-    # ---- randomness ---------------------------------------------------------------
-    @contextlib.contextmanager
-    def _private_rng(self) -> Iterator[None]:
-        """Run SB3 on the solver's own global-RNG streams; restore the caller's after."""
-        cuda = self.device.type == "cuda"
-        caller = capture_global_rng(cuda)
-        try:
-            if self._rng_state is None:
-                seed_global_rng(self.seed)
-            else:
-                restore_global_rng(self._rng_state, cuda)
-            yield
-        finally:
-            self._rng_state = capture_global_rng(cuda)
-            restore_global_rng(caller, cuda)
 
     def clone(self, seed: int) -> SACConstrainedSolver:
         """A copy of this solver — networks, optimisers, replay buffer, envs — with its
@@ -365,16 +290,9 @@ class SACConstrainedSolver:
             raise ValueError(f"seed must be an int, got {seed!r}.")
         twin = copy.deepcopy(self)
         twin.seed = int(seed)
-        twin._rng_state = None  # fresh private streams from the new seed at next use
         twin._eval_rng = np.random.default_rng([twin.seed, 1])
         twin._eval_gen.manual_seed(int(np.random.default_rng([twin.seed, 2]).integers(2**62)))
-        twin.model.action_space.seed(twin.seed)
-        # The episodes in flight go on, on streams of their own (not the original's),
-        # where the env can take one (the protocol's set_rng).
-        for k, env in enumerate(twin.vec_env.envs):
-            set_rng = protocol_attr(env, "set_rng")
-            if callable(set_rng):
-                set_rng(np.random.default_rng([twin.seed, 3, k]))
+        twin.engine.reseed(twin.seed)
         return twin
 
     # ---- state --------------------------------------------------------------------
@@ -382,12 +300,9 @@ class SACConstrainedSolver:
         """The construction a state must have been saved under: every argument that
         shapes the state or the training and evaluation that continue from it (not the
         seed: a clone's differs, and the state carries it)."""
-        m = self.model
-        lr = m.learning_rate
         return {
             "reward_features": self.l_r, "cost_features": self.l_c, "n_envs": self.n_envs,
-            "buffer_size": int(self.replay_buffer.buffer_size), "gamma": self.gamma,
-            "ent_coef": self.ent_coef, "absorbing": self.absorbing,
+            "gamma": self.gamma, "ent_coef": self.ent_coef, "absorbing": self.absorbing,
             "per_agent_critics": self.per_agent_critics,
             "split_cost_critic": self.split_cost_critic,
             "estimate_action": self.estimate_action,
@@ -396,14 +311,7 @@ class SACConstrainedSolver:
             "demo_value_bound": self.demo_value_bound,
             "action_margin": self.action_margin,
             "n_eval_episodes": self.n_eval_episodes,
-            "env": self.spec.describe(),
-            "learning_rate": float(lr) if isinstance(lr, int | float)
-            else getattr(lr, "__qualname__", type(lr).__name__),
-            "batch_size": int(m.batch_size), "learning_starts": int(m.learning_starts),
-            "tau": float(m.tau), "train_freq": repr(m.train_freq),
-            "gradient_steps": int(m.gradient_steps),
-            "target_update_interval": int(m.target_update_interval),
-            "feature_dtype": str(self.replay_buffer.reward_features.dtype),
+            "env": self.spec.describe(), **self.engine.settings,
         }
 
     def state_dict(self) -> dict[str, Any]:
@@ -434,12 +342,9 @@ class SACConstrainedSolver:
             "eta": optional_tensor(self.eta),
             "cost_weights": optional_tensor(self.cost_weights),
             "last_checks": plain(self.last_checks),
-            "global_rng": global_rng_state_dict(self._rng_state),
             "eval_rng": generator_state_dict(self._eval_rng),
             "eval_generator": self._eval_gen.get_state(),
-            "model": model_state_dict(self.model),
-            "replay_buffer": self.replay_buffer.state_dict(),
-            "envs": vec_env_state_dict(self.vec_env),
+            "engine": self.engine.state_dict(),
         }
 
     def check_state(self, sd: dict[str, Any]) -> None:
@@ -447,6 +352,8 @@ class SACConstrainedSolver:
         ``sd`` (a :meth:`state_dict` of a solver built with the same arguments: basis
         widths, ``n_envs``, buffer size, network shapes, discount, the env's class and
         spaces, ...); changes nothing."""
+        if isinstance(sd, dict) and sd.get("format") == _SB3_STATE_FORMAT:
+            sd = _from_sb3_format(sd)  # saved before the engines: SB3's pieces at the top
         if not isinstance(sd, dict) or sd.get("format") != STATE_FORMAT:
             found = sd.get("format") if isinstance(sd, dict) else type(sd).__name__
             raise ValueError(f"Not a SACConstrainedSolver state (format {found!r}, expected "
@@ -469,16 +376,18 @@ class SACConstrainedSolver:
             raise ValueError("This SAC solver state was saved by a solver built differently ("
                              + "; ".join(diff) + "); load it into a solver built with the "
                              "same arguments.")
-        check_model_state(self.model, sd["model"])
-        self.replay_buffer.check_state(sd["replay_buffer"])
-        check_vec_env_state(self.vec_env, sd["envs"])
+        self.engine.check_state(sd["engine"])
         for name, dim in (("eta", self.l_r + 1), ("cost_weights", self.l_c)):
             if sd[name] is not None:
                 check_tensor(f"solver {name}", sd[name], (dim,), torch.float64)
+        # What load_state_dict reads, read once here so that it cannot fail half-way.
+        int(sd["seed"])
+        for check in sd["last_checks"]:
+            dict(check)
+        restore_generator(None, sd["eval_rng"])
         gen_state = self._eval_gen.get_state()
         check_tensor("evaluation torch.Generator", sd["eval_generator"], tuple(gen_state.shape),
                      gen_state.dtype)
-        global_rng_from_state_dict(sd["global_rng"], self.device.type == "cuda")
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         """Continue from a :meth:`state_dict`: afterwards this solver trains, evaluates
@@ -490,25 +399,40 @@ class SACConstrainedSolver:
                 Nothing is changed then.
         """
         self.check_state(sd)
+        if sd.get("format") == _SB3_STATE_FORMAT:
+            sd = _from_sb3_format(sd)
+        # The engine first: its load may still refuse; the solver's own fields cannot.
+        self.engine.seed = int(sd["seed"])
+        self.engine.load_state_dict(sd["engine"])
         self.seed = int(sd["seed"])
         self.eta, self.cost_weights = optional_array(sd["eta"]), optional_array(sd["cost_weights"])
         self.last_checks = [dict(c) for c in sd["last_checks"]]
-        self._rng_state = global_rng_from_state_dict(sd["global_rng"], self.device.type == "cuda")
         self._eval_rng = restore_generator(self._eval_rng, sd["eval_rng"])
         self._eval_gen.set_state(sd["eval_generator"])
-        load_model_state_dict(self.model, sd["model"])
-        self.replay_buffer.load_state_dict(sd["replay_buffer"])
-        load_vec_env_state_dict(self.vec_env, sd["envs"])
 
     # ---- accessors ----------------------------------------------------------------
     @property
-    def replay_buffer(self) -> FeatureReplayBuffer:
-        return self.model.replay_buffer
+    def replay_buffer(self) -> FeatureReplayBuffer | TransitionStore:
+        """The engine's replay buffer (its relabelling, demonstrations and penalty basis)."""
+        return self.engine.replay
 
     @property
     def num_timesteps(self) -> int:
         """Env steps taken so far (over all envs)."""
-        return int(self.model.num_timesteps)
+        return int(self.engine.num_timesteps)
+
+    @property
+    def n_updates(self) -> int:
+        """Gradient updates made so far."""
+        return int(self.engine.n_updates)
+
+    def policy_state(self) -> dict[str, torch.Tensor]:
+        """A copy of the networks (actor, critics, targets; not the optimisers)."""
+        return self.engine.policy_state()
+
+    def load_policy_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Set the networks to a :meth:`policy_state`."""
+        self.engine.load_policy_state(state)
 
     def set_weights(self, eta: Any, cost_weights: Any) -> None:
         """Set ``η = [ω_r, λ]`` (``[l_r + 1]``) and ``ω_c`` (``[l_c]``) for training."""
@@ -530,8 +454,10 @@ class SACConstrainedSolver:
         """
         if demos is not None:
             demos = as_continuous(demos, self.spec)
-        self.replay_buffer.set_demonstrations(demos, self.demo_fraction,
-                                              self._obs_from_states, self.spec.to_policy)
+        self.replay_buffer.set_demonstrations(
+            demos, self.demo_fraction,
+            lambda states: self.engine.demo_obs(self._obs_from_states(states)),
+            self.spec.to_policy)
 
     def _obs_from_states(self, states: np.ndarray) -> np.ndarray:
         """The env's joint observations of joint states (the protocol's
@@ -562,155 +488,39 @@ class SACConstrainedSolver:
         Returns:
             The :class:`SACSolution` of the policy after training.
         """
-        with _step_bar(progress, timesteps) as bar:
+        with step_bar(progress, timesteps) as bar:
             self._train(eta, cost_weights, timesteps, bar)
         return self.evaluate(n_eval_episodes,
                              deterministic=self.estimate_action == "mean")
 
-    def solve_keeping_best(self, eta: Any, cost_weights: Any, timesteps: int, *, checks: int,
-                           restarts: int = 1, n_eval_episodes: int | None = None,
-                           deterministic: bool = False, constraints: Any = None,
-                           penalty_basis: Any = None, progress: str | None = None
-                           ) -> SACSolution:
-        """Train ``timesteps`` in ``checks`` near-equal chunks and end with the networks
-        whose policy scored the highest learned objective
-        (:meth:`SACSolution.penalised_return`) after any chunk; with ``constraints``, the
-        highest :meth:`SACSolution.success_rate_under` them first (ties: the objective).
-
-        SAC's iterates can swing between behaviours from one chunk to the next (seen in
-        the paper's continuous experiment; the Table 2 notes in docs/); this keeps the
-        best one seen, as an evaluation callback that saves the best model does. With
-        ``restarts`` > 1 the same is done from this solver's current state by
-        ``restarts - 1`` clones as well (:meth:`clone`, seeds drawn from this
-        solver's), whose lineages diverge, and the best chunk of any of them is kept: more
-        independent chances when one lineage never settles. The score is the learner's
-        own: its ``(η, ω_c)``, rolled out in the solver's game (the nominal one by default);
-        no true constraint is consulted.
+    @staticmethod
+    def solve_together(solvers: Sequence[SACConstrainedSolver], etas: Any, cost_weights: Any,
+                       timesteps: int, *, n_eval_episodes: int | None = None
+                       ) -> list[SACSolution]:
+        """``[s.solve(eta, w, timesteps) for s, eta, w in zip(solvers, etas,
+        cost_weights)]``, the same numbers, with the lean engines of solvers at the same
+        step trained as one ensemble (:func:`~dicrl_torch.solvers.sac.lean.learn_together`):
+        the learners of one process, e.g. ``comm=simulated``'s.
 
         Args:
-            eta, cost_weights, n_eval_episodes: as :meth:`solve` (rollouts per score).
-            timesteps: env steps per restart (>= ``checks``).
-            checks: number of chunks per restart, each followed by a score; 1 (with one
-                restart) is :meth:`solve`.
-            restarts: independent continuations from the current state (1: this solver's).
-            deterministic: score the mean-action policy (how it is deployed).
-            constraints: ``[l_c]`` bool, the learner's constraint set (e.g. its
-                ``ω_c ≥ 0.5``), or None.
-            penalty_basis: train on the penalty ``λ ω_c · φ`` with ``φ`` this basis's
-                features (``l_c`` of them, e.g. the cost basis grown by a margin:
-                ``CellOccupancyCostBasis.dilated``) for this solve only
-                (:meth:`FeatureReplayBuffer.set_penalty_basis`); the scores and the
-                returned estimates keep the cost basis. None: the cost basis.
-            progress: a tqdm bar over every lineage's env steps with this label (the
-                best score so far beside it), or None.
-
-        Returns:
-            The best chunk's :class:`SACSolution` (its rollouts gave the score); this
-            solver's networks are left as that chunk's. Every chunk's ``{"restart",
-            "timesteps", "penalised_return", "success_under_constraints"}`` (the last None
-            without ``constraints``) is left in ``self.last_checks``.
+            solvers: distinct solvers (the learners of a process).
+            etas: ``[n, l_r + 1]``, one ``η`` per solver.
+            cost_weights: ``[n, l_c]``, one ``ω_c`` per solver.
+            timesteps, n_eval_episodes: as :meth:`solve`.
         """
-        lineages = self.train_lineages(
-            eta, cost_weights, timesteps, checks=checks, restarts=restarts,
-            n_eval_episodes=n_eval_episodes, deterministic=deterministic,
-            constraints=constraints, penalty_basis=penalty_basis, progress=progress)
-        # A clone's solution: its policy now lives here (the clone is closed).
-        return replace(self.adopt_best(lineages).solution, solver=self)
-
-    def train_lineages(self, eta: Any, cost_weights: Any, timesteps: int, *, checks: int,
-                       restarts: int = 1, lineages: Sequence[int] | None = None,
-                       n_eval_episodes: int | None = None, deterministic: bool = False,
-                       constraints: Any = None, penalty_basis: Any = None,
-                       progress: str | None = None) -> list[Lineage]:
-        """:meth:`solve_keeping_best`'s lineages ``lineages`` (default every one of
-        ``range(restarts)``), each trained and scored chunk by chunk, without adopting
-        any: :meth:`adopt_best` does that. Lineage 0 is this solver itself (trained
-        last, so that the clones start from its current state), lineage ``r > 0`` the
-        clone seeded by the ``r``-th seed drawn from this solver's seed.
-
-        As every lineage depends only on the solver's state and its own seed, equal
-        solvers in several processes can each train a share of them: :meth:`adopt_best`
-        of all the lineages (read back with :meth:`Lineage.from_state`), in the process
-        that trained lineage 0, leaves that solver as one :meth:`solve_keeping_best`
-        would have (docs/design.md §7, the shared warm-up).
-
-        Args: as :meth:`solve_keeping_best`; ``progress`` counts the steps of the
-        lineages trained here.
-
-        Returns:
-            One :class:`Lineage` per lineage trained, in increasing order.
-        """
-        if not _is_int(checks) or checks < 1:
-            raise ValueError(f"checks must be a positive int, got {checks!r}.")
-        if not _is_int(timesteps) or timesteps < checks:
-            raise ValueError(f"timesteps must be an int >= checks={checks}, got "
-                             f"{timesteps!r}.")
-        if not _is_int(restarts) or restarts < 1:
-            raise ValueError(f"restarts must be a positive int, got {restarts!r}.")
-        mine = list(range(restarts)) if lineages is None else [int(r) for r in lineages]
-        if not mine or sorted(set(mine)) != sorted(mine) or min(mine) < 0 \
-                or max(mine) >= restarts:
-            raise ValueError(f"lineages must be distinct ints in [0, restarts={restarts}), "
-                             f"got {lineages!r}.")
-        chunks = np.diff(np.linspace(0, int(timesteps), checks + 1).round().astype(int))
-        # Clone seeds come from this solver's seed, so a run is reproducible. The clones
-        # run first, one at a time (each holds a copy of the replay buffer), while this
-        # solver still has the state they start from; it runs last as restart 0.
-        seeds = np.random.SeedSequence([self.seed, 4]).generate_state(restarts - 1)
-        order = [r for r in sorted(mine) if r] + [0] * (0 in mine)
-        # Set before the clones copy the buffer; every later solve trains on φ_c again.
-        self.replay_buffer.set_penalty_basis(penalty_basis)
-        try:
-            with _step_bar(progress, len(order) * int(timesteps)) as bar:
-                done = [self._lineage(r, seeds, eta, cost_weights, chunks, n_eval_episodes,
-                                      deterministic, constraints, bar) for r in order]
-        finally:
-            self.replay_buffer.set_penalty_basis(None)
-        return sorted(done, key=lambda lineage: lineage.restart)
-
-    def _lineage(self, r: int, seeds: np.ndarray, eta: Any, cost_weights: Any,
-                 chunks: np.ndarray, n_eval_episodes: int | None, deterministic: bool,
-                 constraints: Any, bar: Any) -> Lineage:
-        """Lineage ``r`` of :meth:`train_lineages` (0: this solver, else a clone of
-        ``seeds[r - 1]``): its best chunk and every chunk's scores."""
-        solver = self if r == 0 else self.clone(int(seeds[r - 1]))
-        best = None
-        checks = []
-        for k, steps in enumerate(chunks):
-            solver._train(eta, cost_weights, int(steps), bar)
-            solution = solver.evaluate(n_eval_episodes, deterministic=deterministic)
-            objective = solution.penalised_return()[0]
-            success = (None if constraints is None
-                       else solution.success_rate_under(constraints))
-            checks.append({"restart": r, "timesteps": solver.num_timesteps,
-                           "penalised_return": objective,
-                           "success_under_constraints": success})
-            # Ties go to the earlier restart, then the earlier chunk.
-            key = (0.0 if success is None else success, objective, -r, -k)
-            if best is None or key > best.key:
-                best = Lineage(restart=r, key=key, checks=checks, solution=solution,
-                               policy_state=copy.deepcopy(solver.model.policy.state_dict()))
-            if bar is not None:  # the best so far: its success rate, its objective
-                bar.set_postfix(lineage=r, best_objective=f"{best.key[1]:.1f}",
-                                **({} if success is None
-                                   else {"best_success": f"{best.key[0]:.2f}"}),
-                                refresh=False)
-        if solver is not self:
-            solver.close()
-        return best
-
-    def adopt_best(self, lineages: Sequence[Lineage]) -> Lineage:
-        """Load the policy of the best-scored chunk of ``lineages`` (every lineage of a
-        :meth:`train_lineages` split, see there) into this solver, leave every chunk's
-        scores in ``self.last_checks`` (by restart, then chunk) and return that lineage."""
-        if not lineages or len({lineage.restart for lineage in lineages}) != len(lineages):
-            raise ValueError(f"adopt_best needs distinct lineages, got restarts "
-                             f"{[lineage.restart for lineage in lineages]}.")
-        best = max(lineages, key=lambda lineage: lineage.key)
-        self.model.policy.load_state_dict(best.policy_state)
-        self.last_checks = [c for lineage in sorted(lineages, key=lambda x: x.restart)
-                            for c in lineage.checks]
-        return best
+        solvers = list(solvers)
+        if len({id(s) for s in solvers}) != len(solvers):
+            raise ValueError("solve_together needs distinct solvers (one per learner).")
+        for solver, eta, w in zip(solvers, etas, cost_weights, strict=True):
+            solver._train(eta, w, 0)
+        lean = [s.engine for s in solvers if isinstance(s.engine, LeanEngine)]
+        if timesteps > 0:
+            learn_together(lean, int(timesteps))
+            for s in solvers:
+                if not isinstance(s.engine, LeanEngine):
+                    s.engine.learn(int(timesteps))
+        return [s.evaluate(n_eval_episodes, deterministic=s.estimate_action == "mean")
+                for s in solvers]
 
     def _train(self, eta: Any, cost_weights: Any, timesteps: int, bar: Any = None) -> None:
         """Set the weights (relabelling the buffer) and continue SAC for ``timesteps``
@@ -719,18 +529,12 @@ class SACConstrainedSolver:
             raise ValueError(f"timesteps must be an int >= 0, got {timesteps!r}.")
         self.set_weights(eta, cost_weights)
         if timesteps > 0:
-            with self._private_rng():
-                self.model.learn(total_timesteps=int(timesteps), reset_num_timesteps=False,
-                                 callback=None if bar is None else _BarCallback(bar))
+            self.engine.learn(int(timesteps), bar)
 
     def _policy_params(self, obs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and log-std ``[B, d_a]`` (pre-squash) of the actor at observations
         ``[B, obs_dim]`` (``d_a`` the joint action's size)."""
-        actor = self.model.actor
-        with torch.no_grad():
-            o = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-            mean, log_std, _ = actor.get_action_dist_params(o)
-        return mean, log_std
+        return self.engine.policy_params(obs)
 
     def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
         """Joint actions ``[B, d_a]`` in the env's action box for joint observations
@@ -885,41 +689,6 @@ class SACConstrainedSolver:
 
     def close(self) -> None:
         """Close the training, evaluation and reference envs."""
-        self.vec_env.close()
+        self.engine.close()
         for env in self._eval_envs[False] + self._eval_envs[True] + [self._env]:
             env.close()
-
-
-# ---- progress ---------------------------------------------------------------------
-@contextlib.contextmanager
-def _step_bar(label: str | None, total: int) -> Iterator[Any]:
-    """A tqdm bar of ``total`` env steps labelled ``label`` (closed on exit), or None
-    without a label."""
-    if label is None:
-        yield None
-        return
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=int(total), desc=label, unit="step", leave=False)
-    try:
-        yield bar
-    finally:
-        bar.close()
-
-
-class _BarCallback(BaseCallback):
-    """Advances a tqdm bar by the env steps SB3 takes (no randomness, never stops
-    training: the run's numbers are those without it)."""
-
-    def __init__(self, bar: Any) -> None:
-        super().__init__()
-        self.bar = bar
-        self._seen = None
-
-    def _on_training_start(self) -> None:
-        self._seen = self.model.num_timesteps
-
-    def _on_step(self) -> bool:
-        self.bar.update(self.model.num_timesteps - self._seen)
-        self._seen = self.model.num_timesteps
-        return True
