@@ -29,8 +29,8 @@ from dicrl_torch.solvers.sac import SACConstrainedSolver
 
 
 def one_run(n_envs: int, steps: int, device: str, seed: int, gradient_steps: int,
-            per_agent_critics: bool) -> tuple[float, float]:
-    solver = SACConstrainedSolver(
+            per_agent_critics: bool, engine: str) -> tuple[float, float]:
+    solver = SACConstrainedSolver(engine=engine,
         env_factory=JointDroneEnv, reward_basis=DoorLocationRewardBasis(),
         cost_basis=CellOccupancyCostBasis(), seed=seed, n_envs=n_envs, device=device,
         learning_starts=256, n_eval_episodes=1, gradient_steps=gradient_steps,
@@ -38,11 +38,11 @@ def one_run(n_envs: int, steps: int, device: str, seed: int, gradient_steps: int
     eta = np.array([1.0, 0.5, 1.0, 0.5, -1.0])
     wc = np.full(solver.l_c, 0.1)
     solver.solve(eta, wc, 512, n_eval_episodes=1)  # warm-up: past learning_starts
-    updates0 = solver.model._n_updates
+    updates0 = solver.n_updates
     t0 = time.perf_counter()
-    solver.model.learn(total_timesteps=steps, reset_num_timesteps=False)
+    solver.engine.learn(steps)
     dt = time.perf_counter() - t0
-    updates = solver.model._n_updates - updates0
+    updates = solver.n_updates - updates0
     solver.close()
     return steps / dt, updates / dt
 
@@ -56,16 +56,18 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--gradient-steps", type=int, nargs="+", default=[1],
                         help="gradient steps per vectorised env step (n_envs: one per env step)")
+    parser.add_argument("--engine", default="lean", choices=("lean", "sb3"))
     parser.add_argument("--per-agent-critics", action="store_true",
                         help="one soft-Q column per drone (experiment=table2's solver)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     for n_envs, gradient_steps in itertools.product(args.n_envs, args.gradient_steps):
         runs = [one_run(n_envs, args.steps, args.device, seed, gradient_steps,
-                        args.per_agent_critics) for seed in range(args.repeat)]
+                        args.per_agent_critics, args.engine) for seed in range(args.repeat)]
         print(json.dumps({
             "n_envs": n_envs, "gradient_steps": gradient_steps,
             "per_agent_critics": args.per_agent_critics, "device": args.device,
+            "engine": args.engine,
             "threads": args.threads,
             "env_steps_per_s": round(statistics.median(r[0] for r in runs), 1),
             "grad_steps_per_s": round(statistics.median(r[1] for r in runs), 1),

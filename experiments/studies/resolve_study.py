@@ -103,9 +103,14 @@ def last_solve(run: Path, method: str, learner: int, settings: dict) -> None:
                                        if k not in SOLVER_SETTINGS})
     solver = trainer.learner_model.inner_solver(learner)
     for key, value in settings.items():
-        if key in SOLVER_SETTINGS:  # the solver's and its SB3 model's copy
+        if key in SOLVER_SETTINGS:  # the solver's copy and its engine's update's
             setattr(solver, key, value)
-            setattr(solver.model, key, value)
+            engine = solver.engine
+            if hasattr(engine, "model"):  # engine=sb3
+                setattr(engine.model, key, value)
+            else:
+                setattr(engine.sac, key, value)
+                engine.demo_value_bound = solver.demo_value_bound
     # A checkpoint saved before the buffer kept the demonstrations' states: give them again
     # (the same episodes; only the states are new).
     shard = task.shards[learner] if method == "D-ICRL" else task.demos
