@@ -157,7 +157,9 @@ def test_solve_on_a_third_party_game_gives_feature_expectations_of_the_bases():
     assert [p.shape[1:] for p in true.paths] == [(N, D_S)] * 2
     assert [len(p) for p in true.paths] == (true.lengths + 1).tolist()
     assert 0.0 <= true.violation_rate <= 1.0
-    assert solver._eval_envs[True][0].env.constrained
+    episodes = solver._eval_envs[(True, 2)]  # the game's batched env, or joint envs
+    assert (episodes.vector.constrained if episodes.vector is not None
+            else episodes.envs[0].env.constrained)
 
 
 def test_estimates_from_mean_actions_are_the_deployed_policys_rollouts():

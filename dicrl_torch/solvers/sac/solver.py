@@ -23,6 +23,7 @@ from dicrl_torch.solvers.sac.checks import (
     _is_int,
     _weights,
 )
+from dicrl_torch.solvers.sac.episodes import EpisodeSet, episode_set
 from dicrl_torch.solvers.sac.features import _basis_dim, _features
 from dicrl_torch.solvers.sac.lean import LeanEngine, learn_together
 from dicrl_torch.solvers.sac.lineages import Lineage, LineageTraining, step_bar
@@ -31,7 +32,6 @@ from dicrl_torch.solvers.sac.protocol import (
     check_joint_env,
     make_joint_env,
     protocol_attr,
-    step_fields,
 )
 from dicrl_torch.solvers.sac.randomness import (
     generator_state_dict,
@@ -139,9 +139,10 @@ class SACConstrainedSolver(LineageTraining):
             the fast loop) or ``"sb3"`` (:class:`~dicrl_torch.solvers.sac.sb3_engine.SB3Engine`,
             stable-baselines3's loop, the reference the lean one is tested against). The
             same settings give the same algorithm; their random draws differ.
-        batched_env: with the lean engine, step the game's own batched env
-            (:mod:`dicrl_torch.envs.vector`) when its joint env offers one; False steps
-            ``n_envs`` joint envs one by one (the same transitions, slower).
+        batched_env: step the game's own batched env (:mod:`dicrl_torch.envs.vector`)
+            when its joint env offers one, in the lean engine's training and in
+            :meth:`evaluate`; False steps joint envs one by one (the same transitions,
+            slower).
     """
 
     # The kind of environment the solver serves: "continuous" (as its bases,
@@ -247,7 +248,8 @@ class SACConstrainedSolver(LineageTraining):
         self._eval_rng = np.random.default_rng([self.seed, 1])
         self._eval_gen = torch.Generator(device=self.device)
         self._eval_gen.manual_seed(int(np.random.default_rng([self.seed, 2]).integers(2**62)))
-        self._eval_envs: dict[bool, list[gym.Env]] = {False: [], True: []}
+        # Evaluation episodes by (true game, count), built at first use.
+        self._eval_envs: dict[tuple[bool, int], EpisodeSet] = {}
 
         if not isinstance(scale_observations, bool):
             raise ValueError(f"scale_observations must be a bool, got {scale_observations!r}.")
@@ -277,6 +279,7 @@ class SACConstrainedSolver(LineageTraining):
                       demo_value_bound=self.demo_value_bound)
         self.engine = (SB3Engine(**common, sac_kwargs=sac_kwargs) if engine == "sb3"
                        else LeanEngine(**common, batched_env=batched_env))
+        self.batched_env = bool(batched_env)
         self.eta: np.ndarray | None = None
         self.cost_weights: np.ndarray | None = None
         self.last_checks: list[dict[str, Any]] = []
@@ -579,13 +582,13 @@ class SACConstrainedSolver(LineageTraining):
         n = self.n_eval_episodes if n_episodes is None else n_episodes
         if not _is_int(n) or n < 1:
             raise ValueError(f"n_episodes must be a positive int, got {n!r}.")
-        cache = self._eval_envs[bool(true_game)]
-        while len(cache) < n:
-            cache.append(make_joint_env(self.env_factory, constrained=bool(true_game)))
-        envs = cache[:n]
+        key = (bool(true_game), int(n))
+        if key not in self._eval_envs:
+            self._eval_envs[key] = episode_set(self.env_factory, bool(true_game), n,
+                                               self.batched_env)
+        episodes = self._eval_envs[key]
         seeds = (self._eval_rng if rng is None else rng).integers(0, 2**31 - 1, size=n)
-        starts = [env.reset(seed=int(s)) for env, s in zip(envs, seeds, strict=True)]
-        obs = np.stack([o for o, _ in starts])
+        obs, current = episodes.reset(seeds)
         n_agents = self.spec.n_agents
         sums_r, sums_c = np.zeros((n, self.l_r)), np.zeros((n, self.l_c))
         lengths = np.zeros(n, dtype=np.int64)
@@ -594,8 +597,7 @@ class SACConstrainedSolver(LineageTraining):
         disc = np.ones(n)
         alive = np.ones(n, dtype=bool)
         bonus = 1.0 / (1.0 - self.gamma) if self.absorbing else 1.0
-        paths = [[np.array(info["state"])] for _, info in starts] if trajectories else None
-        current = np.stack([np.array(info["state"], dtype=np.float64) for _, info in starts])
+        paths = [[state.copy()] for state in current] if trajectories else None
         bar = None
         if progress is not None:
             from tqdm.auto import tqdm
@@ -607,20 +609,16 @@ class SACConstrainedSolver(LineageTraining):
             else:
                 flying = ~(reached[idx] | (violated[idx] if true_game else False))
                 actions = np.asarray(actor(current[idx], flying, idx))
-            states = np.zeros((len(idx), *self.spec.state_shape))
-            terminal = np.zeros(len(idx), dtype=bool)
-            for j, i in enumerate(idx):
-                o, _, term, trunc, info = envs[i].step(actions[j])
-                state, agents_reached, agents_violated = step_fields(info)
-                obs[i], states[j], terminal[j] = o, state, term
-                current[i] = state
-                reached[i] |= agents_reached
-                violated[i] |= agents_violated
-                lengths[i] += 1
-                if paths is not None:
-                    paths[i].append(np.array(state))
-                if term or trunc:
-                    alive[i] = False
+            o, states, terminal, truncated, agents_reached, agents_violated = \
+                episodes.step(idx, actions)
+            obs[idx], current[idx] = o, states
+            reached[idx] |= agents_reached
+            violated[idx] |= agents_violated
+            lengths[idx] += 1
+            if paths is not None:
+                for j, i in enumerate(idx):
+                    paths[i].append(states[j].copy())
+            alive[idx] = ~(terminal | truncated)
             w = disc[idx] * np.where(terminal, bonus, 1.0)
             sums_r[idx] += w[:, None] * _features(self.reward_basis, states)
             sums_c[idx] += w[:, None] * _features(self.cost_basis, states)
@@ -690,5 +688,6 @@ class SACConstrainedSolver(LineageTraining):
     def close(self) -> None:
         """Close the training, evaluation and reference envs."""
         self.engine.close()
-        for env in self._eval_envs[False] + self._eval_envs[True] + [self._env]:
-            env.close()
+        for episodes in self._eval_envs.values():
+            episodes.close()
+        self._env.close()
