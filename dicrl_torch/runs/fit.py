@@ -61,7 +61,7 @@ SAC_DEFAULTS: Mapping[str, Any] = MappingProxyType(dict(
     estimate_action="sampled", batch_size=256, learning_starts=1000, buffer_size=100_000,
     net_arch=(64, 64), demo_fraction=0.25, demo_bc=0.0, demo_value_bound=False, tau=0.005,
     scale_observations=True, per_agent_critics=True, split_cost_critic=True, device="cpu",
-    absorbing=False))
+    absorbing=False, engine="lean"))
 """:class:`~dicrl_torch.solvers.sac.SACConstrainedSolver`'s keyword arguments
 (``sac_kwargs`` overrides them): ``configs/solver/sac.yaml``'s ``solver`` with
 ``mpe_quick``'s overrides. ``per_agent_critics`` needs bases with ``agent_shares()``
