@@ -124,7 +124,8 @@ The package, by responsibility:
   (:class:`EnsembleSAC`: the update of one or several learners),
   :mod:`~dicrl_torch.solvers.sac.replay` (:class:`TransitionStore`) and
   :mod:`~dicrl_torch.solvers.sac.env_list` (any joint env as a vector env): the lean
-  engine. :mod:`~dicrl_torch.solvers.sac.sb3_engine`: the SB3 one.
+  engine. :mod:`~dicrl_torch.solvers.sac.episodes`: the evaluation rollouts (the batched env
+  where the game has one). :mod:`~dicrl_torch.solvers.sac.sb3_engine`: the SB3 one.
 - :mod:`~dicrl_torch.solvers.sac.protocol`: the checks of the joint-env protocol and
   of the demonstrations against it.
 - :mod:`~dicrl_torch.solvers.sac.labels`: the relabelling and demonstrated transitions
