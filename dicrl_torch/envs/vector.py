@@ -27,7 +27,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-__all__ = ["JointVectorEnv", "VectorStep", "generator_state_dict", "restore_generator"]
+__all__ = ["JointVectorEnv", "VectorStep", "generator_state_dict", "restore_generator",
+           "restore_slot_generators"]
 
 
 @dataclass
@@ -144,3 +145,20 @@ def restore_generator(current: np.random.Generator | None,
         current = np.random.Generator(getattr(np.random, name)())
     current.bit_generator.state = state
     return current
+
+
+def restore_slot_generators(states: Sequence[Any], started: bool, where: str
+                            ) -> list[np.random.Generator | None]:
+    """A vector env's slot streams from their saved states, as new generators (so a
+    failure leaves the env's own untouched); a ValueError naming the slot, ``where`` (the
+    env and the fix), when one cannot be restored or a started env lacks one."""
+    restored = []
+    for k, state in enumerate(states):
+        try:
+            restored.append(restore_generator(None, state))
+        except (AttributeError, KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{where}: slot {k}'s random stream cannot be restored "
+                             f"({e}).") from None
+    if started and any(g is None for g in restored):
+        raise ValueError(f"{where}: a started state lacks a slot's random stream.")
+    return restored

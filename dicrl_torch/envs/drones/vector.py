@@ -33,7 +33,7 @@ from dicrl_torch.envs.vector import (
     JointVectorEnv,
     VectorStep,
     generator_state_dict,
-    restore_generator,
+    restore_slot_generators,
 )
 
 __all__ = ["DroneVectorEnv"]
@@ -237,17 +237,9 @@ class DroneVectorEnv(JointVectorEnv):
                              f"generator states, got {type(rngs).__name__}.")
         # Fresh generators, so that a bad stream in a later slot leaves this env's
         # streams (possibly shared with a caller through set_rng) untouched.
-        restored = []
-        for k, r in enumerate(rngs):
-            try:
-                restored.append(restore_generator(None, r))
-            except (AttributeError, KeyError, TypeError, ValueError) as e:
-                raise ValueError(f"drone vector env: slot {k}'s random stream cannot be "
-                                 f"restored ({e}).") from None
         started = bool(sd["started"])
-        if started and any(r is None for r in restored):
-            raise ValueError("drone vector env: a started state lacks a slot's random "
-                             "stream; load a DroneVectorEnv.state_dict().")
+        restored = restore_slot_generators(
+            rngs, started, "drone vector env (load a DroneVectorEnv.state_dict())")
         self._states, self._active, self._timestep = states, active, timestep
         self._rngs, self._started = restored, started
 

@@ -51,7 +51,7 @@ from dicrl_torch.envs.vector import (
     JointVectorEnv,
     VectorStep,
     generator_state_dict,
-    restore_generator,
+    restore_slot_generators,
 )
 
 __all__ = ["SpreadVectorEnv"]
@@ -352,17 +352,8 @@ class SpreadVectorEnv(JointVectorEnv):
         if not isinstance(sd["rngs"], list) or len(sd["rngs"]) != n:
             raise ValueError(f"spread vector env: the state's rngs must be a list of {n} "
                              f"random streams; {fix}.")
-        rngs = []
-        for k, state in enumerate(sd["rngs"]):
-            try:  # into new generators: a failure leaves this env's streams untouched
-                rngs.append(restore_generator(None, state))
-            except (KeyError, TypeError, ValueError, AttributeError) as e:
-                raise ValueError(f"spread vector env: slot {k}'s random stream cannot be "
-                                 f"restored ({e}); {fix}.") from None
         started = bool(sd["started"])
-        if started and any(g is None for g in rngs):
-            raise ValueError(f"spread vector env: a started state needs every slot's "
-                             f"random stream; {fix}.")
+        rngs = restore_slot_generators(sd["rngs"], started, f"spread vector env ({fix})")
         self._pos, self._vel = arrays["positions"], arrays["velocities"]
         self._active, self._timestep = arrays["active"], arrays["timestep"]
         self._rngs, self._started = rngs, started
