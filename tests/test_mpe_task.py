@@ -447,6 +447,11 @@ def test_warmup_keeps_the_best_scored_chunk_of_several_lineages(capsys):
     assert plain.base.last_checks == []  # one lineage, one chunk: solve, no scoring
     with pytest.raises(ValueError, match="warmup_restarts"):
         tiny_task(warmup_restarts=0)
+    with pytest.raises(ValueError, match=r"warmup_until_success=1.0 is invalid.*"
+                                         r"warmup_checks=1"):
+        tiny_task(warmup_until_success=1.0)
+    with pytest.raises(ValueError, match=r"warmup_until_success=0 is invalid.*\(0, 1\]"):
+        tiny_task(warmup_checks=2, warmup_until_success=0)
     with pytest.raises(ValueError, match=r"warmup_checks=100 is invalid.*warmup_timesteps=60\]"):
         tiny_task(warmup_checks=100)
 

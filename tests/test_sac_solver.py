@@ -739,6 +739,45 @@ def test_solve_keeping_best_restarts_are_clones_scored_like_the_solver(engine):
         kept.solve_keeping_best(eta, wc, 10, checks=1, restarts=0)
 
 
+def test_a_lineage_stops_at_its_first_chunk_reaching_stop_at(monkeypatch):
+    """stop_at: a lineage ends after the first chunk whose success reaches it; the steps
+    left are not trained and that chunk's networks are kept. The scores are made up (the
+    share of drones at their doors: 0.5, then 1.0), the training real: the networks are
+    those of 200 steps trained by hand."""
+    from dataclasses import replace
+
+    eta, wc = random_weights(np.random.default_rng(4))
+    none = torch.zeros(L_C, dtype=torch.bool)
+    shares = iter([0.5, 1.0, 1.0])
+
+    def scored(solver):
+        evaluate = solver.evaluate
+
+        def with_share(*args, **kwargs):
+            sol = evaluate(*args, **kwargs)
+            reached = torch.zeros_like(sol.reached)
+            reached.view(-1)[:int(round(next(shares) * reached.numel()))] = True
+            return replace(sol, reached=reached)
+        monkeypatch.setattr(solver, "evaluate", with_share)
+        return solver
+
+    kept = scored(make_solver(seed=3, learning_starts=50))
+    best = kept.solve_keeping_best(eta, wc, 300, checks=3, n_eval_episodes=2,
+                                   deterministic=True, constraints=none, stop_at=1.0)
+    assert [c["timesteps"] for c in kept.last_checks] == [100, 200]
+    assert [c["success_under_constraints"] for c in kept.last_checks] == [0.5, 1.0]
+    assert kept.num_timesteps == 200 and best.success_rate_under(none) == 1.0
+    manual = make_solver(seed=3, learning_starts=50)
+    for _ in range(2):
+        manual._train(eta, wc, 100)
+        manual.evaluate(2, deterministic=True)  # the same rollouts drawn
+    assert_same_networks(kept.policy_state(), manual.policy_state())
+    for bad, constraints in ((0.0, none), (1.5, none), (True, none), (1.0, None)):
+        with pytest.raises(ValueError, match="stop_at must be a success rate"):
+            kept.solve_keeping_best(eta, wc, 10, checks=2, constraints=constraints,
+                                    stop_at=bad)
+
+
 def test_success_under_constraints_counts_each_drones_own_features():
     """success_rate_under against a hand count over a solution with made-up rollouts."""
     solver = make_solver()

@@ -115,8 +115,8 @@ class SACTask(Task):
             (:class:`~dicrl_torch.runs.settings.TableRollouts`); ``eval_policy="plan"``
             plans with :meth:`make_planner` (the task's; the drone arena has one).
         timesteps, n_eval_episodes: SAC steps and rollouts per inner solve.
-        warmup_timesteps, warmup_restarts, warmup_checks: the warm-up on ``η(0), ω_c(0)``
-            (:class:`~dicrl_torch.runs.settings.WarmUp`).
+        warmup_timesteps, warmup_restarts, warmup_checks, warmup_until_success: the warm-up
+            on ``η(0), ω_c(0)`` (:class:`~dicrl_torch.runs.settings.WarmUp`).
         init_reward_weights, init_multiplier, init_cost_weights: ``η(0)``, ``ω_c(0)``
             (the trainer's, the same numbers).
         final_timesteps, final_checks, final_restarts, final_score, final_margin: the last
@@ -150,6 +150,7 @@ class SACTask(Task):
                  true_constraints: Any = None, eval_episodes: int = 100,
                  eval_action: str = "mean", timesteps: int, n_eval_episodes: int = 10,
                  warmup_timesteps: int = 0, warmup_restarts: int = 1, warmup_checks: int = 1,
+                 warmup_until_success: float | None = None,
                  init_reward_weights: float = 1.0,
                  init_multiplier: float = -1.0, init_cost_weights: float = 0.0,
                  final_timesteps: int | None = None, final_checks: int = 1,
@@ -167,7 +168,8 @@ class SACTask(Task):
             split=split, seed=seed, eval_episodes=eval_episodes, eval_action=eval_action,
             timesteps=timesteps, n_eval_episodes=n_eval_episodes,
             warmup_timesteps=warmup_timesteps, warmup_restarts=warmup_restarts,
-            warmup_checks=warmup_checks, init_reward_weights=init_reward_weights,
+            warmup_checks=warmup_checks, warmup_until_success=warmup_until_success,
+            init_reward_weights=init_reward_weights,
             init_multiplier=init_multiplier, init_cost_weights=init_cost_weights,
             final_timesteps=final_timesteps, final_checks=final_checks,
             final_restarts=final_restarts, final_score=final_score, final_margin=final_margin,
@@ -193,6 +195,7 @@ class SACTask(Task):
         self.eval_episodes, self.eval_action = s.rollouts.episodes, s.rollouts.action
         self.warmup_timesteps, self.warmup_restarts, self.warmup_checks = (
             s.warmup.timesteps, s.warmup.restarts, s.warmup.checks)
+        self.warmup_until_success = s.warmup.until_success
         self.eta0 = torch.full((solver.l_r + 1,), s.init_reward_weights, dtype=torch.float64)
         self.eta0[-1] = s.init_multiplier
         self.cw0 = torch.full((solver.l_c,), s.init_cost_weights, dtype=torch.float64)
@@ -347,7 +350,7 @@ class SACTask(Task):
                     print(f"SAC warm-up loaded from {self._warmup_file} ({summary})",
                           flush=True)
                 else:
-                    summary = (f"{self.warmup_timesteps} steps on η(0) in "
+                    summary = (f"{self._warmup_steps()} steps on η(0) in "
                                f"{time.perf_counter() - t0:.0f} s; in the nominal game {done}")
                     print(f"SAC warm-up: {summary}", flush=True)
                     if self._warmup_file is not None:
@@ -360,10 +363,22 @@ class SACTask(Task):
         self._warm = True
         return self.base
 
+    def _warmup_steps(self) -> str:
+        """The steps the warm-up trained, per lineage (fewer than ``warmup_timesteps``
+        where ``warmup_until_success`` stopped one)."""
+        if self._plain_warmup():
+            return str(self.warmup_timesteps)
+        trained = {}
+        for check in self.base.last_checks:  # every chunk of every lineage, in order
+            trained[check["restart"]] = check["timesteps"]
+        steps = [trained[r] for r in sorted(trained)]
+        return str(steps[0]) if len(set(steps)) == 1 else "+".join(map(str, steps))
+
     def _warmup_lineage_settings(self) -> dict[str, Any]:
         """The warm-up's lineages: chunks, restarts, how they are scored (no constraint
         known yet: "success" is reaching the goals)."""
         return {"checks": self.warmup_checks, "restarts": self.warmup_restarts,
+                "stop_at": self.warmup_until_success,
                 "deterministic": self.eval_action == "mean",
                 "constraints": torch.zeros(self.base.l_c, dtype=torch.bool)}
 

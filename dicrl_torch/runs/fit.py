@@ -69,6 +69,7 @@ SAC_DEFAULTS: Mapping[str, Any] = MappingProxyType(dict(
 
 TASK_DEFAULTS: Mapping[str, Any] = MappingProxyType(dict(
     n_eval_episodes=40, eval_action="mean", warmup_restarts=1, warmup_checks=1,
+    warmup_until_success=None,
     final_checks=6, final_restarts=1, final_score="learned_success", final_margin=0.0,
     threshold=0.5))
 """:class:`~dicrl_torch.runs.continuous.SACTask`'s other keyword arguments (``task_kwargs``

@@ -184,11 +184,15 @@ class WarmUp:
             their goals in the nominal game (no constraint is known yet); the best chunk
             is kept (a lineage can strand an agent on a wall for good, and its visits
             become false constraints; docs/drones.md).
+        until_success: a lineage stops at its first chunk at which this share of the
+            agents reach their goals (the steps left would buy nothing the score can
+            see), or None: every step is trained. Needs ``checks`` > 1.
     """
 
     timesteps: int
     restarts: int
     checks: int
+    until_success: float | None = None
 
     def __post_init__(self) -> None:
         t = setting_int("warmup_timesteps", self.timesteps, least=0, example=30000,
@@ -200,7 +204,15 @@ class WarmUp:
         if t and checks > t:
             raise InvalidSetting("warmup_checks", checks, f"an int in [1, {{warmup_timesteps}}"
                                  f"={t}] (each scored chunk needs a step)", min(3, t))
-        _frozen_set(self, timesteps=t, restarts=restarts, checks=checks)
+        until = setting_number("warmup_until_success", self.until_success, low=0,
+                               high=1, low_open=True, example=1.0, none="train every step",
+                               why="the share of agents at their goals that ends a lineage")
+        if until is not None and checks == 1:
+            raise InvalidSetting("warmup_until_success", until,
+                                 "null with {warmup_checks}=1 (a lineage stops only after "
+                                 "a scored chunk; set warmup_checks to e.g. 3)", "null")
+        _frozen_set(self, timesteps=t, restarts=restarts, checks=checks,
+                    until_success=until)
 
 
 @dataclass(frozen=True)
@@ -356,7 +368,7 @@ class SACSettings:
     @classmethod
     def from_keywords(cls, *, split, seed, eval_episodes, eval_action, timesteps,
                       n_eval_episodes, warmup_timesteps, warmup_restarts, warmup_checks,
-                      init_reward_weights, init_multiplier, init_cost_weights,
+                      warmup_until_success, init_reward_weights, init_multiplier, init_cost_weights,
                       final_timesteps, final_checks, final_restarts, final_score,
                       final_margin, eval_policy, planner, threshold, baseline,
                       baseline_penalty, baseline_timesteps, baseline_epsilon,
@@ -375,7 +387,7 @@ class SACSettings:
             rollouts=TableRollouts(episodes=eval_episodes, action=eval_action,
                                    policy=eval_policy, planner=planner),
             warmup=WarmUp(timesteps=warmup_timesteps, restarts=warmup_restarts,
-                          checks=warmup_checks),
+                          checks=warmup_checks, until_success=warmup_until_success),
             last_solve=LastSolve(timesteps=inner if final_timesteps is None
                                  else final_timesteps, checks=final_checks,
                                  restarts=final_restarts, score=final_score,

@@ -67,8 +67,8 @@ class LineageTraining:
     def solve_keeping_best(self, eta: Any, cost_weights: Any, timesteps: int, *, checks: int,
                            restarts: int = 1, n_eval_episodes: int | None = None,
                            deterministic: bool = False, constraints: Any = None,
-                           penalty_basis: Any = None, progress: str | None = None
-                           ) -> SACSolution:
+                           penalty_basis: Any = None, stop_at: float | None = None,
+                           progress: str | None = None) -> SACSolution:
         """Train ``timesteps`` in ``checks`` near-equal chunks and end with the networks
         whose policy scored the highest learned objective
         (:meth:`SACSolution.penalised_return`) after any chunk; with ``constraints``, the
@@ -98,6 +98,9 @@ class LineageTraining:
                 ``CellOccupancyCostBasis.dilated``) for this solve only
                 (:meth:`FeatureReplayBuffer.set_penalty_basis`); the scores and the
                 returned estimates keep the cost basis. None: the cost basis.
+            stop_at: a lineage ends at its first chunk whose success under
+                ``constraints`` reaches this (no later chunk can score a higher success;
+                the steps left are not trained), or None: every chunk is trained.
             progress: a tqdm bar over every lineage's env steps with this label (the
                 best score so far beside it), or None.
 
@@ -110,7 +113,8 @@ class LineageTraining:
         lineages = self.train_lineages(
             eta, cost_weights, timesteps, checks=checks, restarts=restarts,
             n_eval_episodes=n_eval_episodes, deterministic=deterministic,
-            constraints=constraints, penalty_basis=penalty_basis, progress=progress)
+            constraints=constraints, penalty_basis=penalty_basis, stop_at=stop_at,
+            progress=progress)
         # A clone's solution: its policy now lives here (the clone is closed).
         return replace(self.adopt_best(lineages).solution, solver=self)
 
@@ -118,7 +122,8 @@ class LineageTraining:
                        restarts: int = 1, lineages: Sequence[int] | None = None,
                        n_eval_episodes: int | None = None, deterministic: bool = False,
                        constraints: Any = None, penalty_basis: Any = None,
-                       progress: str | None = None) -> list[Lineage]:
+                       stop_at: float | None = None, progress: str | None = None
+                       ) -> list[Lineage]:
         """:meth:`solve_keeping_best`'s lineages ``lineages`` (default every one of
         ``range(restarts)``), each trained and scored chunk by chunk, without adopting
         any: :meth:`adopt_best` does that. Lineage 0 is this solver itself (trained
@@ -144,6 +149,12 @@ class LineageTraining:
                              f"{timesteps!r}.")
         if not _is_int(restarts) or restarts < 1:
             raise ValueError(f"restarts must be a positive int, got {restarts!r}.")
+        if stop_at is not None and (constraints is None or isinstance(stop_at, bool)
+                                    or not isinstance(stop_at, int | float)
+                                    or not 0.0 < stop_at <= 1.0):
+            raise ValueError(f"stop_at must be a success rate in (0, 1] scored under "
+                             f"constraints (given), or None; got stop_at={stop_at!r}, "
+                             f"constraints={'None' if constraints is None else 'given'}.")
         mine = list(range(restarts)) if lineages is None else [int(r) for r in lineages]
         if not mine or sorted(set(mine)) != sorted(mine) or min(mine) < 0 \
                 or max(mine) >= restarts:
@@ -160,14 +171,15 @@ class LineageTraining:
         try:
             with step_bar(progress, len(order) * int(timesteps)) as bar:
                 done = [self._lineage(r, seeds, eta, cost_weights, chunks, n_eval_episodes,
-                                      deterministic, constraints, bar) for r in order]
+                                      deterministic, constraints, stop_at, bar)
+                        for r in order]
         finally:
             self.replay_buffer.set_penalty_basis(None)
         return sorted(done, key=lambda lineage: lineage.restart)
 
     def _lineage(self, r: int, seeds: np.ndarray, eta: Any, cost_weights: Any,
                  chunks: np.ndarray, n_eval_episodes: int | None, deterministic: bool,
-                 constraints: Any, bar: Any) -> Lineage:
+                 constraints: Any, stop_at: float | None, bar: Any) -> Lineage:
         """Lineage ``r`` of :meth:`train_lineages` (0: this solver, else a clone of
         ``seeds[r - 1]``): its best chunk and every chunk's scores."""
         solver = self if r == 0 else self.clone(int(seeds[r - 1]))
@@ -192,6 +204,10 @@ class LineageTraining:
                                 **({} if success is None
                                    else {"best_success": f"{best.key[0]:.2f}"}),
                                 refresh=False)
+            if stop_at is not None and success >= stop_at:
+                if bar is not None:  # the steps not trained: the bar ends at its total
+                    bar.update(int(chunks[k + 1:].sum()))
+                break
         if solver is not self:
             solver.close()
         return best
