@@ -59,8 +59,8 @@ SAC_TASK_KEYS = {
     "split": "split", "seed": "seed", "eval_episodes": "eval_episodes",
     **{k: f"solver.{k}" for k in (
         "eval_action", "timesteps", "n_eval_episodes", "warmup_timesteps", "warmup_restarts",
-        "warmup_checks", "warmup_until_success", "final_timesteps", "final_checks", "final_restarts", "final_score",
-        "final_margin", "eval_policy", "planner")},
+        "warmup_checks", "warmup_until_success", "final_timesteps", "final_checks",
+        "final_restarts", "final_score", "final_margin", "eval_policy", "planner")},
     **{k: f"algo.{k}" for k in ("init_reward_weights", "init_multiplier",
                                 "init_cost_weights", "threshold")},
     "baseline": "baselines.run", "baseline_penalty": "baselines.penalty",
