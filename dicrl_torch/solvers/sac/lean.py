@@ -21,14 +21,15 @@ learner's numbers do not depend on what else runs in its process.
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
+from dicrl_torch.solvers.sac.engine_settings import EngineSettings
 from dicrl_torch.solvers.sac.env_list import vector_env_of
-from dicrl_torch.solvers.sac.protocol import JointEnvSpec, make_joint_env
+from dicrl_torch.solvers.sac.protocol import make_joint_env
 from dicrl_torch.solvers.sac.randomness import generator_state_dict, restore_generator
 from dicrl_torch.solvers.sac.replay import TransitionStore
 from dicrl_torch.solvers.sac.state import check_tensor
@@ -63,72 +64,60 @@ class LeanEngine:
     """SAC on a vector env with a torch replay store (module docstring).
 
     Args:
-        env_factory: the solver's (``env_factory(constrained=False)`` is trained in).
-        spec: the joint env's :class:`JointEnvSpec`.
-        reward_basis, cost_basis, gamma, absorbing, feature_dtype, per_agent_critics,
-            split_cost_critic, demo_bc, demo_value_bound, n_envs, ent_coef,
-            learning_rate, buffer_size, batch_size, learning_starts, tau, train_freq,
-            gradient_steps, net_arch: as :class:`SACConstrainedSolver`.
-        seed: the engine's streams are drawn from it.
-        device: where the networks live (batches are gathered on the CPU).
-        scale_observations: feed the networks observations mapped onto ``[-1, 1]``.
+        s: the settings (:class:`EngineSettings`; ``scale_observations``: feed the
+            networks observations mapped onto ``[-1, 1]``; batches are gathered on the
+            CPU whatever ``device``).
         batched_env: step the game's own batched env when it offers one (False: one
             joint env per slot, the reference behaviour).
     """
 
     name = "lean"
 
-    def __init__(self, *, env_factory: Callable[..., Any], spec: JointEnvSpec,
-                 reward_basis: torch.nn.Module, cost_basis: torch.nn.Module, seed: int,
-                 n_envs: int, device: torch.device, gamma: float, ent_coef: float,
-                 absorbing: bool, learning_rate: float, buffer_size: int, batch_size: int,
-                 learning_starts: int, tau: float, train_freq: int, gradient_steps: int,
-                 net_arch: Sequence[int], feature_dtype: Any, scale_observations: bool,
-                 per_agent_critics: bool, split_cost_critic: bool, demo_bc: float,
-                 demo_value_bound: bool, batched_env: bool = True) -> None:
-        for name, value, low in (("train_freq", train_freq, 1), ("gradient_steps",
-                                                                  gradient_steps, 0),
-                                 ("batch_size", batch_size, 1), ("buffer_size", buffer_size, 1),
-                                 ("learning_starts", learning_starts, 0)):
+    def __init__(self, s: EngineSettings, *, batched_env: bool = True) -> None:
+        for name, value, low in (("train_freq", s.train_freq, 1),
+                                 ("gradient_steps", s.gradient_steps, 0),
+                                 ("batch_size", s.batch_size, 1),
+                                 ("buffer_size", s.buffer_size, 1),
+                                 ("learning_starts", s.learning_starts, 0)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) \
                     or value < low:
                 raise ValueError(f"{name} must be an int >= {low} (the lean loop counts "
                                  f"train_freq in vectorised steps), got {value!r}.")
-        self.spec, self.device = spec, device
-        self.n_envs = int(n_envs)
-        self.batch_size, self.learning_starts = int(batch_size), int(learning_starts)
-        self.train_freq, self.gradient_steps = int(train_freq), int(gradient_steps)
-        self.demo_value_bound = bool(demo_value_bound)
-        self.settings = {"engine": self.name, "learning_rate": float(learning_rate),
+        self.spec, self.device = s.spec, s.device
+        self.n_envs = int(s.n_envs)
+        self.batch_size, self.learning_starts = int(s.batch_size), int(s.learning_starts)
+        self.train_freq, self.gradient_steps = int(s.train_freq), int(s.gradient_steps)
+        self.demo_value_bound = bool(s.demo_value_bound)
+        self.settings = {"engine": self.name, "learning_rate": float(s.learning_rate),
                          "batch_size": self.batch_size,
-                         "learning_starts": self.learning_starts, "tau": float(tau),
+                         "learning_starts": self.learning_starts, "tau": float(s.tau),
                          "train_freq": self.train_freq, "gradient_steps": self.gradient_steps,
-                         "net_arch": [int(h) for h in net_arch],
-                         "buffer_size": int(buffer_size),
-                         "feature_dtype": str(np.dtype(feature_dtype))}
-        box = spec.observation_space
-        self.scale = ObservationScale(box.low, box.high) if scale_observations \
+                         "net_arch": [int(h) for h in s.net_arch],
+                         "buffer_size": int(s.buffer_size),
+                         "feature_dtype": str(np.dtype(s.feature_dtype))}
+        box = s.spec.observation_space
+        self.scale = ObservationScale(box.low, box.high) if s.scale_observations \
             else ObservationScale()
-        self.vec = vector_env_of(lambda: make_joint_env(env_factory, constrained=False),
+        self.vec = vector_env_of(lambda: make_joint_env(s.env_factory, constrained=False),
                                  self.n_envs, batched=batched_env)
-        n_agents = spec.n_agents
-        n_rewards = (n_agents if per_agent_critics else 1) * (2 if split_cost_critic else 1)
-        self._seed(seed)
-        init = torch.Generator().manual_seed(int(np.random.default_rng([seed, 7])
+        self._seed(s.seed)
+        init = torch.Generator().manual_seed(int(np.random.default_rng([s.seed, 7])
                                                  .integers(2**62)))
         obs_dim = int(np.prod(box.shape))
-        self.sac = EnsembleSAC(obs_dim=obs_dim, action_dim=spec.action_dim, hidden=net_arch,
-                               n_rewards=n_rewards, generators=[init],
-                               learning_rate=learning_rate, gamma=gamma, ent_coef=ent_coef,
-                               tau=tau, demo_bc=demo_bc, demo_value_bound=demo_value_bound)
-        if device.type != "cpu":
+        self.sac = EnsembleSAC(obs_dim=obs_dim, action_dim=s.spec.action_dim,
+                               hidden=s.net_arch, n_rewards=s.n_rewards, generators=[init],
+                               learning_rate=s.learning_rate, gamma=s.gamma,
+                               ent_coef=s.ent_coef, tau=s.tau, demo_bc=s.demo_bc,
+                               demo_value_bound=s.demo_value_bound)
+        if s.device.type != "cpu":
             self._to_device()
-        self.replay = TransitionStore(int(buffer_size), obs_dim, spec.action_dim,
-                                      reward_basis=reward_basis, cost_basis=cost_basis,
-                                      gamma=gamma, absorbing=absorbing,
-                                      state_shape=spec.state_shape,
-                                      per_agent=per_agent_critics,
-                                      split_cost=split_cost_critic, feature_dtype=feature_dtype)
+        self.replay = TransitionStore(int(s.buffer_size), obs_dim, s.spec.action_dim,
+                                      reward_basis=s.reward_basis, cost_basis=s.cost_basis,
+                                      gamma=s.gamma, absorbing=s.absorbing,
+                                      state_shape=s.spec.state_shape,
+                                      per_agent=s.per_agent_critics,
+                                      split_cost=s.split_cost_critic,
+                                      feature_dtype=s.feature_dtype)
         self.num_timesteps, self.n_updates, self.vec_steps = 0, 0, 0
         self._obs: np.ndarray | None = None  # [n_envs, d_o] scaled, what the next step acts on
 

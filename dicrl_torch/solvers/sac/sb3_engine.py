@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -26,8 +26,9 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from dicrl_torch.solvers.sac.buffer import FeatureReplayBuffer
 from dicrl_torch.solvers.sac.decomposed import DecomposedSAC
+from dicrl_torch.solvers.sac.engine_settings import EngineSettings
 from dicrl_torch.solvers.sac.features import BoxScaler
-from dicrl_torch.solvers.sac.protocol import JointEnvSpec, protocol_attr
+from dicrl_torch.solvers.sac.protocol import protocol_attr
 from dicrl_torch.solvers.sac.randomness import (
     capture_global_rng,
     global_rng_from_state_dict,
@@ -48,21 +49,18 @@ __all__ = ["SB3Engine"]
 
 
 class SB3Engine:
-    """SAC through SB3 (module docstring). Arguments as
-    :class:`~dicrl_torch.solvers.sac.lean.LeanEngine`'s, plus ``sac_kwargs`` (further
-    keyword arguments of ``stable_baselines3.SAC``)."""
+    """SAC through SB3 (module docstring).
+
+    Args:
+        s: the settings (:class:`EngineSettings`).
+        sac_kwargs: further keyword arguments of ``stable_baselines3.SAC``.
+    """
 
     name = "sb3"
 
-    def __init__(self, *, env_factory: Callable[..., Any], spec: JointEnvSpec,
-                 reward_basis: torch.nn.Module, cost_basis: torch.nn.Module, seed: int,
-                 n_envs: int, device: torch.device, gamma: float, ent_coef: float,
-                 absorbing: bool, learning_rate: float, buffer_size: int, batch_size: int,
-                 learning_starts: int, tau: float, train_freq: int, gradient_steps: int,
-                 net_arch: Sequence[int], feature_dtype: Any, scale_observations: bool,
-                 per_agent_critics: bool, split_cost_critic: bool, demo_bc: float,
-                 demo_value_bound: bool, sac_kwargs: dict[str, Any] | None = None) -> None:
-        self.seed, self.device, self.n_envs = int(seed), device, int(n_envs)
+    def __init__(self, s: EngineSettings, *,
+                 sac_kwargs: dict[str, Any] | None = None) -> None:
+        self.seed, self.device, self.n_envs = int(s.seed), s.device, int(s.n_envs)
         self._rng_state: tuple[Any, ...] | None = None
         kwargs = dict(sac_kwargs or {})
         for key in ("ent_coef", "replay_buffer_class", "seed", "gamma"):
@@ -71,47 +69,47 @@ class SB3Engine:
                     f"sac_kwargs must not set {key!r}: the solver fixes it; use the solver's "
                     f"own argument instead."
                 )
-        policy_kwargs = {"net_arch": list(net_arch), **kwargs.pop("policy_kwargs", {})}
-        if scale_observations:
+        policy_kwargs = {"net_arch": list(s.net_arch), **kwargs.pop("policy_kwargs", {})}
+        if s.scale_observations:
             if "features_extractor_class" in policy_kwargs:
                 raise ValueError("scale_observations=True sets the features extractor; drop "
                                  "features_extractor_class from sac_kwargs['policy_kwargs'].")
             policy_kwargs["features_extractor_class"] = BoxScaler
         algorithm = SAC
         # SB3's SAC has no reward columns and no demonstration terms
-        if per_agent_critics or split_cost_critic or demo_bc > 0 or demo_value_bound:
+        if s.per_agent_critics or s.split_cost_critic or s.demo_bc > 0 or s.demo_value_bound:
             algorithm = DecomposedSAC
-            policy_kwargs["n_rewards"] = ((spec.n_agents if per_agent_critics else 1)
-                                          * (2 if split_cost_critic else 1))
+            policy_kwargs["n_rewards"] = s.n_rewards
         # Even building the vec env draws from the global numpy stream (SB3): all of it
         # happens on the engine's private streams.
         with self.private_rng():
-            self.vec_env = make_vec_env(env_factory, n_envs=self.n_envs,
+            self.vec_env = make_vec_env(s.env_factory, n_envs=self.n_envs,
                                         env_kwargs={"constrained": False},
                                         vec_env_cls=DummyVecEnv)
             self.vec_env.seed(self.seed)  # used at the first reset, inside learn()
             self.model = algorithm(
-                "MlpPolicy", self.vec_env, learning_rate=learning_rate,
-                buffer_size=buffer_size, learning_starts=learning_starts,
-                batch_size=batch_size, tau=tau, gamma=gamma, train_freq=train_freq,
-                gradient_steps=gradient_steps, ent_coef=ent_coef,
+                "MlpPolicy", self.vec_env, learning_rate=s.learning_rate,
+                buffer_size=s.buffer_size, learning_starts=s.learning_starts,
+                batch_size=s.batch_size, tau=s.tau, gamma=s.gamma, train_freq=s.train_freq,
+                gradient_steps=s.gradient_steps, ent_coef=s.ent_coef,
                 replay_buffer_class=FeatureReplayBuffer,
-                replay_buffer_kwargs={"reward_basis": reward_basis, "cost_basis": cost_basis,
-                                      "gamma": gamma, "absorbing": absorbing,
-                                      "feature_dtype": feature_dtype,
-                                      "state_shape": spec.state_shape,
-                                      "per_agent": per_agent_critics,
-                                      "split_cost": split_cost_critic},
-                policy_kwargs=policy_kwargs, device=device, seed=None, verbose=0,
+                replay_buffer_kwargs={"reward_basis": s.reward_basis,
+                                      "cost_basis": s.cost_basis,
+                                      "gamma": s.gamma, "absorbing": s.absorbing,
+                                      "feature_dtype": s.feature_dtype,
+                                      "state_shape": s.spec.state_shape,
+                                      "per_agent": s.per_agent_critics,
+                                      "split_cost": s.split_cost_critic},
+                policy_kwargs=policy_kwargs, device=s.device, seed=None, verbose=0,
                 **kwargs,
             )
-        self.model.demo_bc, self.model.demo_value_bound = demo_bc, demo_value_bound
+        self.model.demo_bc, self.model.demo_value_bound = s.demo_bc, s.demo_value_bound
         # Without a logger of its own, every learn() call makes SB3 create an empty
         # SB3-<time> directory in the system temp dir: thousands per table2 run.
         self.model.set_logger(Logger(folder=None, output_formats=[]))
         # Random warm-up actions come from the action space's own generator.
         self.model.action_space.seed(self.seed)
-        m, lr = self.model, learning_rate
+        m, lr = self.model, s.learning_rate
         self.settings = {
             "engine": self.name,
             "learning_rate": float(lr) if isinstance(lr, int | float)

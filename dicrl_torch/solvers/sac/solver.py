@@ -23,6 +23,7 @@ from dicrl_torch.solvers.sac.checks import (
     _is_int,
     _weights,
 )
+from dicrl_torch.solvers.sac.engine_settings import EngineSettings
 from dicrl_torch.solvers.sac.episodes import EpisodeSet, episode_set
 from dicrl_torch.solvers.sac.features import _basis_dim, _features
 from dicrl_torch.solvers.sac.lean import LeanEngine, learn_together
@@ -266,19 +267,18 @@ class SACConstrainedSolver(LineageTraining):
         if engine == "lean" and sac_kwargs:
             raise ValueError(f"sac_kwargs {sorted(sac_kwargs)} are stable-baselines3 options; "
                              f"they need engine='sb3'.")
-        common = dict(env_factory=env_factory, spec=self.spec, reward_basis=reward_basis,
-                      cost_basis=cost_basis, seed=self.seed, n_envs=self.n_envs,
-                      device=self.device, gamma=self.gamma, ent_coef=self.ent_coef,
-                      absorbing=self.absorbing, learning_rate=learning_rate,
-                      buffer_size=buffer_size, batch_size=batch_size,
-                      learning_starts=learning_starts, tau=tau, train_freq=train_freq,
-                      gradient_steps=gradient_steps, net_arch=net_arch,
-                      feature_dtype=feature_dtype, scale_observations=scale_observations,
-                      per_agent_critics=per_agent_critics,
-                      split_cost_critic=split_cost_critic, demo_bc=self.demo_bc,
-                      demo_value_bound=self.demo_value_bound)
-        self.engine = (SB3Engine(**common, sac_kwargs=sac_kwargs) if engine == "sb3"
-                       else LeanEngine(**common, batched_env=batched_env))
+        settings = EngineSettings(
+            env_factory=env_factory, spec=self.spec, reward_basis=reward_basis,
+            cost_basis=cost_basis, seed=self.seed, n_envs=self.n_envs, device=self.device,
+            gamma=self.gamma, ent_coef=self.ent_coef, absorbing=self.absorbing,
+            learning_rate=learning_rate, buffer_size=buffer_size, batch_size=batch_size,
+            learning_starts=learning_starts, tau=tau, train_freq=train_freq,
+            gradient_steps=gradient_steps, net_arch=net_arch, feature_dtype=feature_dtype,
+            scale_observations=scale_observations, per_agent_critics=per_agent_critics,
+            split_cost_critic=split_cost_critic, demo_bc=self.demo_bc,
+            demo_value_bound=self.demo_value_bound)
+        self.engine = (SB3Engine(settings, sac_kwargs=sac_kwargs) if engine == "sb3"
+                       else LeanEngine(settings, batched_env=batched_env))
         self.batched_env = bool(batched_env)
         self.eta: np.ndarray | None = None
         self.cost_weights: np.ndarray | None = None
