@@ -162,3 +162,47 @@ def test_the_lean_loop_learns_the_drone_task_signal():
     # gradient_steps per vectorised step past learning_starts, as SB3 counts them
     assert solver.n_updates == 4 * (2000 - 500) // 4
     assert after > 1.5 * before  # a margin of learning, not a tuned amount
+
+
+@pytest.mark.parametrize("learners", [1, 2])
+def test_the_numbers_do_not_depend_on_torchs_thread_count(learners):
+    """At table2_quick's shapes (batch 256, 64x64 networks, per-drone split critics) the
+    lean loop gives the same networks on 1 and on 2 torch threads, solo and as an
+    ensemble: a warm-up may borrow the cores of processes that only wait for it
+    (SACTask._shared_warmup), and comm=simulated (default threads) and comm=distributed
+    (one per learner process) stay equal."""
+    from dicrl_torch.bench import TABLE2_QUICK_DYNAMICS, TABLE2_QUICK_SOLVER
+    from dicrl_torch.demos.drone_demos import make_drone_demonstrations
+    from dicrl_torch.envs.drones import DroneDynamics
+    from dicrl_torch.solvers.sac.lean import learn_together
+
+    dynamics = DroneDynamics(**TABLE2_QUICK_DYNAMICS)
+    demos = make_drone_demonstrations(4, rng=np.random.default_rng(0), dynamics=dynamics)
+    settings = {**TABLE2_QUICK_SOLVER, "learning_starts": 300}
+
+    def trained(threads: int) -> list[dict[str, torch.Tensor]]:
+        own = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            solvers = []
+            for k in range(learners):
+                solver = SACConstrainedSolver(
+                    env_factory=lambda constrained: JointDroneEnv(constrained=constrained,
+                                                                  dynamics=dynamics),
+                    reward_basis=DoorLocationRewardBasis(),
+                    cost_basis=CellOccupancyCostBasis(), seed=k, n_eval_episodes=1,
+                    **settings)
+                solver.set_demonstrations(demos)
+                solver.set_weights(np.array([1.0, 1.0, 1.0, 1.0, -5.0]),
+                                   np.full(solver.l_c, 0.1))
+                solvers.append(solver)
+            learn_together([s.engine for s in solvers], 600)
+            assert all(s.n_updates == 300 for s in solvers)
+            return [s.policy_state() for s in solvers]
+        finally:
+            torch.set_num_threads(own)
+
+    for one, two in zip(trained(1), trained(2), strict=True):
+        assert one.keys() == two.keys()
+        for key in one:
+            assert torch.equal(one[key], two[key]), key

@@ -28,10 +28,12 @@ Nothing here reads a config.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import inspect
 import json
+import os
 import shutil
 import stat
 import time
@@ -83,6 +85,19 @@ def derived_seed(seed: int, *keys: int) -> int:
     """An independent stream per purpose (learner, C-ICRL, evaluation) from one seed: the
     one derivation of every continuous task's streams."""
     return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
+
+
+@contextlib.contextmanager
+def _threads(n: int):
+    """torch on ``n`` threads inside (at most the cores this process may run on)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
+        else (os.cpu_count() or 1)
+    own = torch.get_num_threads()
+    torch.set_num_threads(max(1, min(int(n), cores)))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(own)
 
 
 def _file_stamp(path: Path) -> tuple[int, int, int] | None:
@@ -399,7 +414,12 @@ class SACTask(Task):
         from dicrl_torch.solvers.sac import Lineage  # SB3: only where SAC runs
 
         if self._plain_warmup():
-            return self._train_plain_warmup(label) if self._process == 0 else None
+            if self._process != 0:
+                return None
+            # The other processes only wait: their cores are this one's meanwhile (at
+            # these shapes torch's numbers do not depend on its thread count).
+            with _threads(torch.get_num_threads() * self._processes):
+                return self._train_plain_warmup(label)
         p, n, restarts = self._process, self._processes, self.warmup_restarts
         folder = self._warmup_file.parent / WARMUP_LINEAGES_DIR
         mine = list(range(p, restarts, n))
