@@ -85,7 +85,9 @@ def test_the_task_builds_with_its_shards_bases_and_truth(task):
     # around it overlap the disc; the proximity feature is the distance constraint.
     names = [task.cost_basis.names[j] for j in np.flatnonzero(task.true)]
     assert names == ["cell(3,3)", "cell(4,3)", "cell(3,4)", "cell(4,4)", "proximity"]
-    assert task.columns == ("FPR", "FNR", "FNR_required", "CVR", "SR")
+    assert task.columns == ("FPR", "FNR", "FNR_required", "region_recall",
+                            "region_precision", "region_precision_determined", "region_iou",
+                            "CVR", "SR")
     assert "2 learners holding [2, 3]" in task.describe()
 
 

@@ -168,9 +168,8 @@ def test_the_lean_loop_learns_the_drone_task_signal():
 def test_the_numbers_do_not_depend_on_torchs_thread_count(learners):
     """At table2_quick's shapes (batch 256, 64x64 networks, per-drone split critics) the
     lean loop gives the same networks on 1 and on 2 torch threads, solo and as an
-    ensemble: a warm-up may borrow the cores of processes that only wait for it
-    (SACTask._shared_warmup), and comm=simulated (default threads) and comm=distributed
-    (one per learner process) stay equal."""
+    ensemble: comm=simulated (torch's default threads, the learners one ensemble) and
+    comm=distributed (a thread per learner process) give the same numbers."""
     from dicrl_torch.bench import TABLE2_QUICK_DYNAMICS, TABLE2_QUICK_SOLVER
     from dicrl_torch.demos.drone_demos import make_drone_demonstrations
     from dicrl_torch.envs.drones import DroneDynamics

@@ -28,12 +28,10 @@ Nothing here reads a config.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
 import inspect
 import json
-import os
 import shutil
 import stat
 import time
@@ -54,6 +52,13 @@ from dicrl_torch.envs.parallel import agg_axes, axes_image
 from dicrl_torch.features.continuous import ContinuousFeatureBasis
 from dicrl_torch.io import atomic_write
 from dicrl_torch.metrics import false_negative_rate, false_positive_rate, learned_constraints
+from dicrl_torch.region import (
+    RegionTruth,
+    feature_support,
+    predicted_forbidden,
+    region_scores,
+    undetermined_states,
+)
 from dicrl_torch.runs.settings import (
     EVAL_ACTIONS,
     EVAL_POLICIES,
@@ -85,19 +90,6 @@ def derived_seed(seed: int, *keys: int) -> int:
     """An independent stream per purpose (learner, C-ICRL, evaluation) from one seed: the
     one derivation of every continuous task's streams."""
     return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
-
-
-@contextlib.contextmanager
-def _threads(n: int):
-    """torch on ``n`` threads inside (at most the cores this process may run on)."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
-        else (os.cpu_count() or 1)
-    own = torch.get_num_threads()
-    torch.set_num_threads(max(1, min(int(n), cores)))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(own)
 
 
 def _file_stamp(path: Path) -> tuple[int, int, int] | None:
@@ -414,12 +406,7 @@ class SACTask(Task):
         from dicrl_torch.solvers.sac import Lineage  # SB3: only where SAC runs
 
         if self._plain_warmup():
-            if self._process != 0:
-                return None
-            # The other processes only wait: their cores are this one's meanwhile (at
-            # these shapes torch's numbers do not depend on its thread count).
-            with _threads(torch.get_num_threads() * self._processes):
-                return self._train_plain_warmup(label)
+            return self._train_plain_warmup(label) if self._process == 0 else None
         p, n, restarts = self._process, self._processes, self.warmup_restarts
         folder = self._warmup_file.parent / WARMUP_LINEAGES_DIR
         mine = list(range(p, restarts, n))
@@ -500,11 +487,55 @@ class SACTask(Task):
     # ------------------------------------------------------------------ metrics
     def rates(self, mask: np.ndarray) -> dict[str, Any]:
         """FPR, FNR (None without a ground truth), the size and the names of a learned
-        set ``mask`` ``[l_c]`` bool."""
+        set ``mask`` ``[l_c]`` bool, and its region scores (:meth:`region_rates`)."""
         names = [self.cost_basis.names[j] for j in np.flatnonzero(mask)]
         return {"FPR": false_positive_rate(mask, self.true),
                 "FNR": false_negative_rate(mask, self.true),
-                "n_learned": int(mask.sum()), "constraints": names}
+                "n_learned": int(mask.sum()), "constraints": names,
+                **self.region_rates(mask)}
+
+    # ------------------------------------------------------------------ regions
+    region_test_states: int = 20_000
+    """Joint states in the region scores' test set (:mod:`dicrl_torch.region`)."""
+    REGION_KEYS = ("region_recall", "region_precision", "region_precision_determined",
+                   "region_iou", "region_undetermined")
+
+    def region_truth(self) -> RegionTruth | None:
+        """The game's forbidden joint states (:class:`~dicrl_torch.region.RegionTruth`);
+        None here: a game of unknown truth, whose region scores are ``null``."""
+        return None
+
+    def region_test(self) -> dict[str, Any] | None:
+        """The region scores' test set, computed once: ``states`` ``[M, N, d_s]``,
+        ``forbidden`` and ``undetermined`` ``[M]`` bool, ``support`` ``[M, l_c]`` bool
+        (where each cost feature is positive) and the demonstrations' ``band``; None
+        without a :meth:`region_truth`."""
+        if not hasattr(self, "_region_test"):
+            truth = self.region_truth()
+            if truth is None:
+                self._region_test = None
+            else:
+                states = truth.test_states(self.region_test_states, seed=self.seed)
+                forbidden = np.asarray(truth.forbidden(states), dtype=bool)
+                d = self.demos
+                episodes = [d.states[k, :int(d.lengths[k]) + 1] for k in range(len(d.lengths))]
+                undetermined, band = undetermined_states(states, ~forbidden, episodes)
+                self._region_test = {"states": states, "forbidden": forbidden,
+                                     "undetermined": undetermined, "band": band,
+                                     "support": feature_support(self.cost_basis, states),
+                                     "kinds": truth.kinds}
+        return self._region_test
+
+    def region_rates(self, mask: np.ndarray) -> dict[str, float | None]:
+        """The learned set ``mask`` ``[l_c]`` bool scored as a classifier of the test
+        states (:func:`~dicrl_torch.region.region_scores`, keys ``region_*``); every
+        value None without a :meth:`region_truth`."""
+        test = self.region_test()
+        if test is None:
+            return dict.fromkeys(self.REGION_KEYS)
+        scores = region_scores(test["forbidden"], predicted_forbidden(test["support"], mask),
+                               test["undetermined"])
+        return {f"region_{k}": v for k, v in scores.items()}
 
     def learned_mask(self, row: dict) -> np.ndarray:
         """``[l_c]`` bool: a row's learned constraints (its ``constraints`` names)."""

@@ -32,8 +32,11 @@ from pathlib import Path
 import numpy as np
 
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations, save_drone_demonstrations
-from dicrl_torch.envs.drones import render_arena, start_support
+from dicrl_torch.envs.drones import DroneDynamics, render_arena, start_support
+from dicrl_torch.envs.drones.geometry import PROXIMITY_RADIUS, ROOM_SIZE, in_obstacle, too_close
+from dicrl_torch.region import RegionTruth
 from dicrl_torch.runs.continuous import GREEDY_BASELINE, SACTask, derived_seed
+from dicrl_torch.runs.results import REGION_COLUMNS
 from dicrl_torch.runs.task import Rollouts
 from dicrl_torch.solvers.drone_planning import (
     PLANNER_DEFAULTS,
@@ -70,6 +73,7 @@ class DroneTask(SACTask):
             ``baseline*``).
     """
 
+    columns = ("FPR", "FNR", *REGION_COLUMNS, "CVR", "SR")
     can_plan = True  # make_planner: the nominal arena's dynamics
     game = "drones"
     # make_planner's caches: the nominal dynamics (one env read, not one per episode)
@@ -90,9 +94,24 @@ class DroneTask(SACTask):
                          true_constraints=cost_basis.true_constraints().numpy(),
                          final_score=final_score, start_states=start_support(), **settings)
         self.reward_basis, self.cost_basis = reward_basis, cost_basis
+        self.dynamics = DroneDynamics() if dynamics is None else dynamics
         if self.eval_policy == "plan":
             # now rather than after training, where the evaluation builds the planner
             check_planner_settings(cost_basis, {**PLANNER_DEFAULTS, **self.planner_settings})
+
+    def region_truth(self) -> RegionTruth:
+        """The true game's violations as a function of a joint state (both drones
+        flying): a drone inside an obstacle, or the two closer than the proximity radius
+        (as :func:`~dicrl_torch.envs.drones.joint_step` checks them); states over the
+        room, velocities up to the dynamics' velocity bound."""
+
+        def forbidden(states: np.ndarray) -> np.ndarray:
+            pos = states[..., :2]
+            return in_obstacle(pos).any(-1) | too_close(pos, PROXIMITY_RADIUS)
+
+        return RegionTruth(forbidden=forbidden, low=(0.0, 0.0), high=(ROOM_SIZE, ROOM_SIZE),
+                           max_speed=float(self.dynamics.vel_limit), n_agents=2,
+                           kinds=("obstacle", "proximity"))
 
     # ------------------------------------------------------------------ planning
     def make_planner(self, eta: np.ndarray, cost_weights: np.ndarray, constraints: np.ndarray,

@@ -81,10 +81,13 @@ from dicrl_torch.envs.mpe import (
     render_spread,
     sample_starts,
 )
+from dicrl_torch.envs.mpe.layout import MAX_SPEED, in_disc, pairwise_too_close
 from dicrl_torch.features.continuous import ContinuousFeatureBasis, PositionCellBasis
 from dicrl_torch.features.mpe import LandmarkRewardBasis
 from dicrl_torch.metrics import true_constraints_of
+from dicrl_torch.region import RegionTruth
 from dicrl_torch.runs.continuous import SACTask, derived_seed
+from dicrl_torch.runs.results import REGION_COLUMNS
 from dicrl_torch.runs.task import Rollouts
 
 __all__ = ["ANNOTATIONS", "ControllerPolicy", "MPETask", "build_mpe_task",
@@ -275,7 +278,7 @@ class MPETask(SACTask):
             the layout (the message names the field and the fix).
     """
 
-    columns = ("FPR", "FNR", "FNR_required", "CVR", "SR")
+    columns = ("FPR", "FNR", "FNR_required", *REGION_COLUMNS, "CVR", "SR")
     game = "mpe_spread"
 
     def __init__(self, *, solver, layout: SpreadLayout, env_kwargs: Mapping[str, Any]
@@ -334,6 +337,23 @@ class MPETask(SACTask):
                 disc_centre=lay.disc_centre, disc_radius=lay.disc_radius,
                 min_distance=lay.min_distance or None).numpy()
         return true_constraints_of(cost_basis)  # a ConstraintBasis's own, or None
+
+    def region_truth(self) -> RegionTruth:
+        """The true game's violations as a function of a joint state (every agent
+        active): an agent strictly inside the disc, or two agents closer than the
+        minimum distance (as ConstrainedSpread checks them); states over the arena,
+        velocities up to the agents' top speed."""
+        lay = self.layout
+
+        def forbidden(states: np.ndarray) -> np.ndarray:
+            pos = states[..., :2]
+            disc = in_disc(pos, lay.disc_centre, lay.disc_radius).any(-1)
+            return disc | pairwise_too_close(pos, lay.min_distance).any(-1)
+
+        h = lay.arena_half_width
+        return RegionTruth(forbidden=forbidden, low=(-h, -h), high=(h, h),
+                           max_speed=MAX_SPEED, n_agents=lay.n_agents,
+                           kinds=("disc", "proximity"))
 
     # ------------------------------------------------------------------ experts
     def _env(self, constrained: bool) -> ConstrainedSpread:
