@@ -183,21 +183,19 @@ def region_scores(forbidden: np.ndarray, predicted: np.ndarray,
             "undetermined": int((p & u).sum()) / n_pred if n_pred else 0.0}
 
 
-def recall_bound(support: np.ndarray, forbidden: np.ndarray, demo_support: np.ndarray,
-                 start_support: np.ndarray) -> float:
-    """The most of the forbidden region a learner can recover with this basis: the share
-    of forbidden test states inside the support of some feature that neither its
-    demonstrations nor the start states ever make positive (a feature its experts use is
-    no constraint of theirs, and the trainer pins start-state features to 0).
+def recall_bound(support: np.ndarray, forbidden: np.ndarray, usable: np.ndarray) -> float:
+    """The most of the forbidden region a learner can recover with a basis: the share of
+    forbidden test states inside the support of some feature it can learn at all.
 
     Args:
         support: :func:`feature_support` of the test states ``[M, l]``.
         forbidden: ``[M]`` bool.
-        demo_support, start_support: :func:`feature_support` of the learner's
-            demonstrated states and of the start states ``[*, l]``.
+        usable: ``[l]`` bool, the features that can become constraints: positive on none
+            of the learner's demonstrated states (a feature its experts make positive is
+            no constraint of theirs) and none of the start states (the trainer pins
+            those to 0).
     """
-    usable = ~(demo_support.any(0) | start_support.any(0))
     f = np.asarray(forbidden, dtype=bool)
     if not f.any():
         return 1.0
-    return float((support[f][:, usable].any(-1)).mean())
+    return float(support[f][:, np.asarray(usable, dtype=bool)].any(-1).mean())

@@ -9,7 +9,6 @@ Tiny scale on one CPU thread: SAC steps in the tens; plumbing, not learning qual
 
 from __future__ import annotations
 
-import contextlib
 import json
 import subprocess
 import sys
@@ -210,7 +209,7 @@ CONFIG_TINY = ["env.arena.max_steps=30", "eval_episodes=2", "n_demonstrations=4"
 
 
 @pytest.mark.parametrize("cost", ["features/cost=position_cells",
-                                  "features/cost=frozen_network"])
+                                  "features/cost=local_relu"])
 def test_the_mpe_quick_config_runs_end_to_end(cost, tmp_path):
     """``experiment=mpe_quick`` (``env=mpe_spread``, ``features/reward=landmark_coverage``)
     checked, built by experiments/common.py's dispatch and run through the runner as
@@ -232,12 +231,9 @@ def test_the_mpe_quick_config_runs_end_to_end(cost, tmp_path):
     assert isinstance(t, MPETask) and t.split == [2, 2]
     assert not t.base.absorbing and t.base.ent_coef == 0.1
     cells = cost.endswith("position_cells")
-    # A frozen network's features are positive on every start: D-ICRL says nothing can
-    # become a constraint.
-    with contextlib.nullcontext() if cells else pytest.warns(UserWarning, match="start"):
-        res = run_all_in_one(t, run_settings(cfg), trainer_spec(cfg), out=tmp_path,
-                             t_start=time.perf_counter(), logger=NullLogger(),
-                             communicator=lambda n: build(cfg.comm, n_learners=n))
+    res = run_all_in_one(t, run_settings(cfg), trainer_spec(cfg), out=tmp_path,
+                         t_start=time.perf_counter(), logger=NullLogger(),
+                         communicator=lambda n: build(cfg.comm, n_learners=n))
     rows = [r for m in ("D-ICRL", "C-ICRL") for r in res["methods"][m]["learners"]]
     assert len(rows) == 3 and all(0 <= r["CVR"] <= 1 and 0 <= r["SR"] <= 1 for r in rows)
     # the last solve's chunks were ranked by success under each learner's own set
@@ -247,10 +243,34 @@ def test_the_mpe_quick_config_runs_end_to_end(cost, tmp_path):
     if cells:
         assert int(t.true.sum()) == 5 and res["identifiability"]["n_required"] == 5
         assert all(0 <= r["FPR"] <= 1 for r in rows)
-    else:  # a frozen network has no ground truth: FPR, FNR and the classes are null
-        assert t.true is None and t.cost_basis.dim == 32
+    else:  # local units have no per-feature truth: FPR, FNR and the classes are null
+        assert t.true is None and t.cost_basis.dim == 144 + 24
         assert res["identifiability"] is None
         assert all(r["FPR"] is None and r["FNR_required"] is None for r in rows)
+    # every basis's learned set scored as a region, with the bound said before training
+    for r in rows:
+        assert 0 <= r["region_recall"] <= r["region_recall_bound"] + 1e-12 <= 1 + 1e-12
+        assert 0 <= r["region_precision"] <= r["region_precision_determined"] <= 1
+    assert (tmp_path / "region_D-ICRL_1.png").stat().st_size > 0
+
+
+def test_a_cost_basis_that_can_express_nothing_is_refused_before_training(tmp_path):
+    """A network ending in a sigmoid is positive everywhere: every feature is positive on
+    every demonstration, so with budget 0 none can be a constraint. The run is refused
+    at its start, the message naming the cause and the fix; the sigmoid's positive
+    outputs are why the bound of what it can express is 0."""
+    sigmoid = ModuleBasis(module=bounded_mlp(8, 6, hidden=(16,), seed=0), dim=6,
+                          n_agents=2, state_dim=4)
+    t = tiny_task(cost_basis=sigmoid)
+    assert not t.constrainable().any()
+    assert t.expressivity() == [0.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match=r"can express no constraint.*sigmoid.*"
+                                         r"features/cost=local_relu"):
+        run_tiny(t, tmp_path)
+    assert not (tmp_path / "results.json").exists()
+    cells = tiny_task()
+    assert cells.constrainable().any(1).all()  # the disc cells: no expert enters them
+    assert cells.expressivity() == [1.0, 1.0, 1.0]
 
 
 def test_the_shipped_mpe_quick_config_composes_unchanged():

@@ -68,11 +68,11 @@ def test_support_prediction_and_the_recall_bound_by_hand():
     forbidden = np.array([0, 1, 1, 1, 1], dtype=bool)  # x >= 1
     # The demonstrations use feature 1 (they fly through [1, 2)), the starts feature 0:
     # only feature 2 can become a constraint, covering 2 of the 4 forbidden states.
-    demo = feature_support(Boxes(), _states([1.2]))
-    start = feature_support(Boxes(), _states([0.1]))
-    assert recall_bound(support, forbidden, demo, start) == 2 / 4
-    assert recall_bound(support, forbidden, start, start) == 3 / 4
-    assert recall_bound(support, np.zeros(5, bool), demo, start) == 1.0
+    usable = ~(feature_support(Boxes(), _states([1.2, 0.1])).any(0))
+    assert usable.tolist() == [False, False, True]
+    assert recall_bound(support, forbidden, usable) == 2 / 4
+    assert recall_bound(support, forbidden, np.array([False, True, True])) == 3 / 4
+    assert recall_bound(support, np.zeros(5, bool), usable) == 1.0
 
 
 def test_undetermined_states_come_from_the_demonstrations():

@@ -32,6 +32,7 @@ import dataclasses
 import hashlib
 import inspect
 import json
+import re
 import shutil
 import stat
 import time
@@ -48,7 +49,7 @@ from dicrl_torch.algos.models import SACLearnerModel
 from dicrl_torch.checks import check_int
 from dicrl_torch.demos import partition_demonstrations
 from dicrl_torch.demos.continuous import save_continuous_demonstrations
-from dicrl_torch.envs.parallel import agg_axes, axes_image
+from dicrl_torch.envs.parallel import agg_axes, axes_image, figure_image
 from dicrl_torch.features.continuous import ContinuousFeatureBasis
 from dicrl_torch.io import atomic_write
 from dicrl_torch.metrics import false_negative_rate, false_positive_rate, learned_constraints
@@ -56,6 +57,7 @@ from dicrl_torch.region import (
     RegionTruth,
     feature_support,
     predicted_forbidden,
+    recall_bound,
     region_scores,
     undetermined_states,
 )
@@ -263,9 +265,22 @@ class SACTask(Task):
                 f"{self.cost_basis.dim} cost features, {truth}")
 
     def announce(self, out: Path) -> None:
-        """Prints :meth:`describe` and saves the demonstrations as ``demos.npz``."""
+        """Prints :meth:`describe` and what the cost basis can express
+        (:meth:`expressivity`), refusing one that can express nothing
+        (:meth:`check_expressive`), and saves the demonstrations as ``demos.npz``."""
+        self.check_expressive()
         save_continuous_demonstrations(Path(out) / "demos.npz", self.demos)
         print(self.describe(), flush=True)
+        self.print_expressivity()
+
+    def print_expressivity(self) -> None:
+        """One line: each learner's :meth:`expressivity` (nothing without a truth)."""
+        bounds = self.expressivity()
+        if bounds is not None:
+            print("the most of the forbidden region each learned set can cover with this "
+                  "cost basis (an upper bound on region recall): "
+                  + ", ".join(f"learner {v + 1} {b:.2f}" for v, b in enumerate(bounds[:-1]))
+                  + f", C-ICRL {bounds[-1]:.2f}", flush=True)
 
     def initial_weights(self) -> dict[str, float]:
         """``η(0)`` and ``ω_c(0)`` as the trainer takes them (``DICRL``'s
@@ -526,6 +541,52 @@ class SACTask(Task):
                                      "kinds": truth.kinds}
         return self._region_test
 
+    def constrainable(self) -> np.ndarray:
+        """``[n_shards + 1, l_c]`` bool: per learner (the shards, then C-ICRL holding them
+        all) the cost features that can become constraints at all: positive on none of
+        its demonstrated states and none of the start states (budget 0: a feature its
+        experts make positive is no constraint of theirs, and the trainer pins the start
+        states' features to 0)."""
+        if not hasattr(self, "_constrainable"):
+            start = feature_support(self.cost_basis, np.asarray(self.start_states)).any(0) \
+                if self.start_states is not None else np.zeros(self.cost_basis.dim, bool)
+            rows = []
+            for d in (*self.shards, self.demos):
+                states = np.concatenate([d.states[k, :int(d.lengths[k]) + 1]
+                                         for k in range(len(d.lengths))])
+                rows.append(~(feature_support(self.cost_basis, states).any(0) | start))
+            self._constrainable = np.stack(rows)
+        return self._constrainable
+
+    def check_expressive(self) -> None:
+        """Refuse a cost basis of which no learner can learn any constraint (every
+        feature positive on its demonstrations or the start states: e.g. a network
+        ending in a sigmoid, positive everywhere), naming the fix, before training."""
+        if not self.constrainable().any():
+            raise ValueError(
+                f"The cost basis {getattr(self.cost_basis, 'label', type(self.cost_basis))} "
+                f"can express no constraint: every one of its {self.cost_basis.dim} "
+                f"features is positive on every learner's demonstrations or on the start "
+                f"states, and with budget 0 a feature's constraint set is where it is "
+                f"positive (paper §3), so none can be learned (a network ending in a "
+                f"sigmoid is positive everywhere). Use features with exact zeros: e.g. "
+                f"features/cost=local_relu (LocalReLUBasis), or end your network with a "
+                f"ReLU clipped to max_value (torch.clamp(x, 0, max_value)) so that each "
+                f"feature is 0 outside a region.")
+
+    def expressivity(self) -> list[float] | None:
+        """Per learner (the shards in order, then C-ICRL holding them all), the most of
+        the forbidden region its learned set can cover with this cost basis
+        (:func:`~dicrl_torch.region.recall_bound`: the share of forbidden test states in
+        the support of a feature that neither its demonstrations nor the start states
+        make positive); None without a :meth:`region_truth`. Computed from the shards and
+        the basis alone, before training."""
+        test = self.region_test()
+        if test is None:
+            return None
+        return [recall_bound(test["support"], test["forbidden"], usable)
+                for usable in self.constrainable()]
+
     def region_rates(self, mask: np.ndarray) -> dict[str, float | None]:
         """The learned set ``mask`` ``[l_c]`` bool scored as a classifier of the test
         states (:func:`~dicrl_torch.region.region_scores`, keys ``region_*``); every
@@ -637,7 +698,7 @@ class SACTask(Task):
                 progress=self._planning_label(trainer, i) if progress else None)
             row.update(self.rates(mask), multiplier=float(eta[-1]),
                        reward_weights=eta[:-1].tolist(), policy_timesteps=None,
-                       final_checks=None)
+                       final_checks=None, region_recall_bound=self._bound(trainer, i))
             return row, paths
         f = self.final
         kept = solver.solve_keeping_best(
@@ -648,8 +709,16 @@ class SACTask(Task):
         row, paths = self._evaluate_true_game(solver)
         row.update(self.rates(mask), multiplier=float(eta[-1]),
                    reward_weights=eta[:-1].tolist(), policy_timesteps=kept.timesteps,
-                   final_checks=solver.last_checks)
+                   final_checks=solver.last_checks, region_recall_bound=self._bound(trainer, i))
         return row, paths
+
+    def _bound(self, trainer: DICRL, i: int) -> float | None:
+        """The :meth:`expressivity` of ``trainer``'s local learner ``i`` (C-ICRL: all
+        the demonstrations)."""
+        bounds = self.expressivity()
+        if bounds is None:
+            return None
+        return bounds[-1] if trainer.n_learners == 1 else bounds[trainer.local[i]]
 
     @staticmethod
     def _planning_label(trainer: DICRL, i: int) -> str:
@@ -723,11 +792,35 @@ class SACTask(Task):
         a game adds its own figures to these."""
         from dicrl_torch.figures import cost_weight_curves
 
+        images = self.region_maps(methods, experiment)
         if not any(h.get("cost_weights") is not None for hs in histories.values() for h in hs):
-            return {}  # e.g. a history checkpointed before the weights were recorded
-        return {"cost_weights": cost_weight_curves(
+            return images  # e.g. a history checkpointed before the weights were recorded
+        return {**images, "cost_weights": cost_weight_curves(
             histories, true=self.true, threshold=self.threshold,
             title=f"{experiment}: the cost weights by outer iteration")}
+
+    def region_maps(self, methods: dict, experiment: str) -> dict[str, np.ndarray]:
+        """Per learned row ``region_<method>_<v>``: over the positions an agent can
+        reach, the share of the region test set's states with an agent there that the
+        learned set forbids, beside the share the truth forbids (the region itself, plus
+        the pairwise part spread thin); none without a :meth:`region_truth`."""
+        test = self.region_test()
+        if test is None:
+            return {}
+        truth = self.region_truth()
+        images = {}
+        for name, m in methods.items():
+            for v, row in enumerate(m["learners"]):
+                if row.get("constraints") is None:
+                    continue
+                predicted = predicted_forbidden(test["support"], self.learned_mask(row))
+                tag = "region_" + re.sub(r"[^\w.-]", "", name) + f"_{v + 1}"
+                images[tag] = region_map(
+                    test["states"], predicted, test["forbidden"], truth.low, truth.high,
+                    title=f"{experiment}, {name} {v + 1}: forbidden share by position "
+                          f"(R_rec {row.get('region_recall', 0):.2f}, "
+                          f"R_prec {row.get('region_precision', 0):.2f})")
+        return images
 
 
 def feature_strip(learned: np.ndarray, true: np.ndarray | None, *, title: str = ""
@@ -749,3 +842,32 @@ def feature_strip(learned: np.ndarray, true: np.ndarray | None, *, title: str = 
     ax.set_ylim(-rows + 0.8, 1.1)
     ax.set_axis_off()
     return axes_image(ax, title)
+
+
+def region_map(states: np.ndarray, predicted: np.ndarray, forbidden: np.ndarray,
+               low: Sequence[float], high: Sequence[float], *, title: str = "",
+               bins: int = 30) -> np.ndarray:
+    """Two panels over an agent's positions ``(x, y)`` in the box ``low``-``high``: the
+    share of joint states ``[M, N, d_s]`` with an agent in each bin that ``predicted``
+    ``[M]`` marks (the learned set), and that ``forbidden`` ``[M]`` marks (the truth);
+    an ``H x W x 3`` uint8 image."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    pos = states[..., :2].reshape(-1, 2)
+    n = states.shape[1]
+    edges = [np.linspace(low[k], high[k], bins + 1) for k in range(2)]
+    count, _, _ = np.histogram2d(pos[:, 0], pos[:, 1], bins=edges)
+    fig = Figure(figsize=(7.0, 3.6), dpi=80)
+    FigureCanvasAgg(fig)
+    for k, (mask, label) in enumerate(((predicted, "learned set"), (forbidden, "truth"))):
+        hit, _, _ = np.histogram2d(pos[:, 0], pos[:, 1], bins=edges,
+                                   weights=np.repeat(np.asarray(mask, float), n))
+        ax = fig.add_subplot(1, 2, k + 1)
+        image = ax.imshow((hit / np.maximum(count, 1)).T, origin="lower", vmin=0, vmax=1,
+                          extent=(low[0], high[0], low[1], high[1]), cmap="Reds")
+        ax.set_title(label, fontsize=8)
+        ax.set_aspect("equal")
+    fig.colorbar(image, ax=fig.axes, shrink=0.8, label="share of states forbidden")
+    fig.suptitle(title, fontsize=8)
+    return figure_image(fig)

@@ -34,6 +34,7 @@ import numpy as np
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations, save_drone_demonstrations
 from dicrl_torch.envs.drones import DroneDynamics, render_arena, start_support
 from dicrl_torch.envs.drones.geometry import PROXIMITY_RADIUS, ROOM_SIZE, in_obstacle, too_close
+from dicrl_torch.metrics import true_constraints_of
 from dicrl_torch.region import RegionTruth
 from dicrl_torch.runs.continuous import GREEDY_BASELINE, SACTask, derived_seed
 from dicrl_torch.runs.results import REGION_COLUMNS
@@ -91,7 +92,7 @@ class DroneTask(SACTask):
             sum(int(m) for m in split), rng=np.random.default_rng(int(seed)),
             dynamics=dynamics)
         super().__init__(solver=solver, demos=self.drone_demos, split=split, seed=seed,
-                         true_constraints=cost_basis.true_constraints().numpy(),
+                         true_constraints=true_constraints_of(cost_basis),
                          final_score=final_score, start_states=start_support(), **settings)
         self.reward_basis, self.cost_basis = reward_basis, cost_basis
         self.dynamics = DroneDynamics() if dynamics is None else dynamics
@@ -147,15 +148,18 @@ class DroneTask(SACTask):
 
     # ------------------------------------------------------------------ set-up
     def describe(self) -> str:
+        truth = ("no per-feature ground truth (the region scores say what is recovered)"
+                 if self.true is None else f"{int(self.true.sum())} of them true constraints")
         return (f"2 drones, {len(self.split)} learners holding {self.split} demonstrated "
-                f"pairs; {self.cost_basis.dim} cost features, {int(self.true.sum())} of them "
-                f"true constraints")
+                f"pairs; {self.cost_basis.dim} cost features, {truth}")
 
     def announce(self, out: Path) -> None:
-        """Prints :meth:`describe` and saves the planner's pairs (``DroneDemonstrations``)
-        as ``demos.npz``."""
+        """As :meth:`SACTask.announce`, saving the planner's pairs
+        (``DroneDemonstrations``) as ``demos.npz``."""
+        self.check_expressive()
         save_drone_demonstrations(Path(out) / "demos.npz", self.drone_demos)
         print(self.describe(), flush=True)
+        self.print_expressivity()
 
     def warmup_summary(self, solution) -> str:
         return (f"{float(solution.reached.double().mean()):.2f} of the drones reach their "
@@ -168,6 +172,8 @@ class DroneTask(SACTask):
         checkpoint)."""
         mask = self.learned_mask(row)
         paths = [p[:, :, :2] for p in list(rollouts)[:9]]  # the drones' positions
+        if self.true is None:  # not cells: the region maps (figures) show the learned set
+            return render_arena(trajectories=paths, title=f"{label}: {len(paths)} rollouts")
         return render_arena(trajectories=paths, constraint_cells=mask,
                             title=f"{label}: learned constraints (hatched) and "
                                   f"{len(paths)} rollouts")
@@ -189,5 +195,7 @@ class DroneTask(SACTask):
                                  experiment=experiment, eval_every=eval_every)
         images["fig3b_demonstrations"] = render_arena(
             trajectories=[s[:, :, :2] for s in self.drone_demos.states],
-            constraint_cells=self.true, title="Demonstrations and the true constraint cells")
+            constraint_cells=self.true,
+            title="Demonstrations" + ("" if self.true is None
+                                      else " and the true constraint cells"))
         return images

@@ -199,7 +199,15 @@ def _check_basis(basis: Any, role: str, states: np.ndarray) -> None:
         raise ValueError(f"{role} {label} returned values in [{float(phi.min()):.4g}, "
                          f"{float(phi.max()):.4g}], outside [0, max_value={top}]: the "
                          f"features must be bounded and non-negative; rescale them (e.g. "
-                         f"end the network with ScaledSigmoid(max_value)).")
+                         f"end the network with {_BOUNDED_END[role]}).")
+
+
+# How a network's output layer keeps its features in [0, max_value]: a cost feature needs
+# exact zeros (its constraint set is its support), a reward feature need not.
+_BOUNDED_END = {"cost_basis": "a ReLU clipped to max_value, torch.clamp(x, 0, max_value), "
+                              "so that each feature is 0 outside a region: a sigmoid is "
+                              "positive everywhere and can be no constraint",
+                "reward_basis": "ScaledSigmoid(max_value)"}
 
 
 def _check_geometry(reward_basis: Any, cost_basis: Any, layout: SpreadLayout) -> None:

@@ -1,0 +1,205 @@
+"""A deep cost basis whose features can be constraints: local ReLU units.
+
+With a budget of 0 the constraint set of a feature is its support, ``C_j = {φ_j > 0}``
+(paper §3). A feature positive everywhere (a sigmoid network's) forbids the whole space
+and can never be a constraint; a feature with exact zeros outside a small region can.
+:class:`LocalReLUBasis` is a frozen two-layer ReLU network built so that every output
+unit is *local*:
+
+- hidden units ``ReLU(±u_m · (x - c_k))`` along ``M`` directions ``u_m`` (evenly spaced,
+  randomly rotated) give ``Σ_m |u_m · (x - c_k)|``, a polygonal norm of ``x - c_k``
+  (a ``2M``-gon; scaled, within a few per cent of the Euclidean norm);
+- the output ``φ_k(x) = ReLU(1 - ν(x - c_k) / ρ)`` is 1 at its centre ``c_k`` and exactly
+  0 outside the polygon of radius ``ρ`` round it.
+
+The centres spread over the box an agent can reach by farthest-point sampling of a
+seeded uniform pool (no two close, no region left out), and ``ρ`` is the pool's covering
+radius in that norm (plus the pool's spacing) times ``overlap``: every reachable position
+lies in some feature's support. Pairs
+of agents get units of their separation ``ν(x_i - x_j)`` instead, rings
+``ReLU(1 - |ν - c_r| / w)`` at evenly spaced separations from 0 (pairwise constraints such
+as a minimum distance are regions of it). Nothing is read from the game but the box and
+the number of agents: moving an obstacle leaves every weight as it was
+(tests/test_local_basis.py).
+
+What it can and cannot express (docs/design.md §6, "Deep cost features"): a forbidden
+region is recovered where it is covered by the supports of features that no
+demonstration and no start state enters; the part of the region within ``ρ`` of where the
+experts fly is not (those features are used by the experts), nor is any constraint on
+velocities or actions (the units read positions only).
+:func:`~dicrl_torch.region.recall_bound` measures it per learner before training.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from dicrl_torch.checks import check_int, check_positive
+from dicrl_torch.features.continuous import (
+    ContinuousFeatureBasis,
+    _optional_int,
+    check_position_columns,
+)
+
+__all__ = ["LocalReLUBasis", "farthest_points"]
+
+
+def farthest_points(pool: np.ndarray, k: int, rng: np.random.Generator
+                    ) -> tuple[np.ndarray, float]:
+    """``k`` points of ``pool`` ``[P, d]`` chosen greedily, each the farthest from those
+    chosen before (the first at random), and the pool's covering radius: the largest
+    distance from a pool point to its nearest chosen point."""
+    if not 1 <= k <= len(pool):
+        raise ValueError(f"farthest_points needs 1 <= k <= {len(pool)} pool points, got "
+                         f"k={k}.")
+    chosen = [int(rng.integers(len(pool)))]
+    nearest = np.linalg.norm(pool - pool[chosen[0]], axis=1)
+    for _ in range(k - 1):
+        j = int(np.argmax(nearest))
+        chosen.append(j)
+        nearest = np.minimum(nearest, np.linalg.norm(pool - pool[j], axis=1))
+    return pool[chosen], float(nearest.max())
+
+
+class LocalReLUBasis(ContinuousFeatureBasis):
+    """Local ReLU units over each agent's position and the agents' separations (module
+    docstring): ``l = K (N if per_agent else 1) + R``, values in ``[0, max_value]``.
+
+    Args:
+        n_agents: ``N``.
+        bounds: ``((x_lo, x_hi), (y_lo, y_hi))``, the box an agent can reach.
+        n_centres: ``K`` position units.
+        n_rings: ``R`` separation units (0: none, a game without pairwise constraints).
+        directions: ``M`` directions of the polygonal norm (``2M``-gon supports).
+        overlap: the support radius over the centres' covering radius (>= 1: every
+            reachable position lies in some support; larger: more overlap, coarser).
+        per_agent: one set of units per agent, named ``f"{agent_prefix}{i}/local{k}"``
+            (the agent's own), or (False) shared units ``local{k}`` counting the agents
+            in them.
+        agent_prefix: how per-agent names start (the drones' bases say ``"drone"``).
+        seed: the pool, the first centre and the directions' rotation.
+        position_columns: the state components holding ``x`` and ``y``.
+        state_dim: when given, inputs must have this ``d_s``.
+    """
+
+    def __init__(self, *, n_agents: int, bounds: Sequence[Sequence[float]],
+                 n_centres: int = 144, n_rings: int = 24, directions: int = 6,
+                 overlap: float = 1.0, per_agent: bool = False, agent_prefix: str = "agent",
+                 seed: int = 0, position_columns: Sequence[int] = (0, 1),
+                 state_dim: int | None = None) -> None:
+        super().__init__()
+        self.n_agents = check_int("n_agents", n_agents)
+        self.state_dim = _optional_int("state_dim", state_dim)
+        b = np.asarray(bounds, dtype=np.float64)
+        if b.shape != (2, 2) or not np.isfinite(b).all() or not (b[:, 0] < b[:, 1]).all():
+            raise ValueError(f"bounds must be ((x_lo, x_hi), (y_lo, y_hi)) with lo < hi, got "
+                             f"{bounds!r}.")
+        self.bounds = tuple(tuple(float(v) for v in row) for row in b)
+        k = check_int("n_centres", n_centres)
+        r = check_int("n_rings", n_rings, 0)
+        m = check_int("directions", directions)
+        self.overlap = check_positive("overlap", overlap)
+        if self.overlap < 1.0:
+            raise ValueError(f"overlap must be >= 1 (below it some reachable positions lie "
+                             f"in no feature's support), got {overlap!r}.")
+        if not isinstance(per_agent, bool):
+            raise ValueError(f"per_agent must be a bool, got {per_agent!r}.")
+        self.per_agent, self.agent_prefix = per_agent, str(agent_prefix)
+        self.position_columns = check_position_columns(position_columns, self.state_dim)
+        rng = np.random.default_rng([check_int("seed", seed, 0), 52])
+        pool = rng.uniform(b[:, 0], b[:, 1], size=(max(64 * k, 4096), 2))
+        centres, _ = farthest_points(pool, k, rng)
+        angle = rng.uniform(0.0, math.pi / m) + math.pi * np.arange(m) / m
+        # π / (2M) Σ_m |u_m · v| is |v| on average over v's direction (E|cos| = 2/π).
+        scale = math.pi / (2 * m)
+        directions_ = scale * np.stack([np.cos(angle), np.sin(angle)], 1)  # [M, 2]
+        # The covering radius in the units' own norm, plus the pool's spacing (a position
+        # between pool points): every reachable position lies in some support.
+        gap = np.abs((pool[:, None, :] - centres[None]) @ directions_.T).sum(-1).min(1)
+        spacing = math.sqrt(float(np.prod(b[:, 1] - b[:, 0])) / len(pool))
+        self.radius = self.overlap * (float(gap.max()) + spacing)
+        diagonal = float(np.linalg.norm(b[:, 1] - b[:, 0]))
+        self.ring_width = diagonal / max(r, 1)
+        rings = self.ring_width * np.arange(r)  # from separation 0
+        self.register_buffer("centres", torch.tensor(centres))
+        self.register_buffer("directions", torch.tensor(directions_))
+        self.register_buffer("rings", torch.tensor(rings))
+        self.register_buffer("_columns", torch.tensor(self.position_columns), persistent=False)
+        self.n_centres, self.n_rings = k, r
+        n_pairs = self.n_agents * (self.n_agents - 1) // 2
+        self.max_value = float(max(1 if per_agent else self.n_agents, n_pairs if r else 0, 1))
+        if per_agent:
+            self.names = [f"{self.agent_prefix}{i}/local{j}" for i in range(self.n_agents)
+                          for j in range(k)]
+        else:
+            self.names = [f"local{j}" for j in range(k)]
+        self.names += [f"ring{j}" for j in range(r)]
+
+    def _norm(self, v: torch.Tensor) -> torch.Tensor:
+        """The polygonal norm ``[...]`` of vectors ``[..., 2]``: the hidden ReLU layer
+        ``ReLU(u_m · v) + ReLU(-u_m · v)`` summed."""
+        a = v @ self.directions.to(v.dtype).T  # [..., M]
+        return (torch.relu(a) + torch.relu(-a)).sum(-1)
+
+    def compute(self, states: torch.Tensor) -> torch.Tensor:
+        if max(self.position_columns) >= states.shape[-1]:
+            raise ValueError(f"{self.label}: position_columns {self.position_columns} do not "
+                             f"fit states with d_s={states.shape[-1]} components; set "
+                             f"position_columns to the columns of x and y.")
+        pos = states.index_select(-1, self._columns)  # [..., N, 2]
+        centres = self.centres.to(states.dtype)
+        local = torch.relu(1.0 - self._norm(pos.unsqueeze(-2) - centres) / self.radius)
+        local = local.flatten(-2) if self.per_agent else local.sum(-2)  # [..., N K] / [..., K]
+        if not self.n_rings:
+            return local
+        n = states.shape[-2]
+        i, j = torch.triu_indices(n, n, 1, device=states.device)
+        separation = self._norm(pos[..., i, :] - pos[..., j, :])  # [..., P]
+        gap = (separation.unsqueeze(-1) - self.rings.to(states.dtype)).abs()
+        rings = torch.relu(1.0 - gap / self.ring_width).sum(-2)  # [..., R]
+        return torch.cat([local, rings], -1)
+
+    # ---- what a planner asks of a cost basis -----------------------------------------
+    dilatable = True
+
+    def dilated(self, margin: float) -> LocalReLUBasis:
+        """The same units, each support grown by ``margin`` (its radius, and a ring's
+        half-width; values inside rescaled to the wider unit): where a learned unit
+        fires within ``margin`` of where it fires here."""
+        margin = float(margin)
+        if not np.isfinite(margin) or margin < 0:
+            raise ValueError(f"margin must be a finite number >= 0, got {margin!r}.")
+        grown = copy.deepcopy(self)
+        grown.radius, grown.ring_width = self.radius + margin, self.ring_width + margin
+        return grown
+
+    def dot(self, states: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """``[...]`` the features of joint states ``[..., N, d_s]`` times ``weights
+        [l]``, computing only the units of nonzero weight (a planner's learned set is a
+        few of them); equal to ``numpy_features(states) @ weights`` up to the order of
+        the sum."""
+        w = np.asarray(weights, dtype=np.float64)
+        keep = np.flatnonzero(w)
+        if not len(keep):
+            return np.zeros(np.shape(states)[:-2])
+        sub = copy.copy(self)  # the kept units only, sharing every setting
+        k, n = self.n_centres, self.n_agents
+        local = keep[keep < len(self.names) - self.n_rings]
+        rings = keep[keep >= len(self.names) - self.n_rings] - (len(self.names) - self.n_rings)
+        units = np.unique(local % k) if self.per_agent else local
+        sub._buffers = dict(self._buffers)
+        sub.centres = self.centres[torch.as_tensor(units, dtype=torch.long)]
+        sub.rings = self.rings[torch.as_tensor(rings, dtype=torch.long)]
+        sub.n_centres, sub.n_rings = len(units), len(rings)
+        phi = sub.compute(torch.as_tensor(states)).numpy()
+        # Weights in the sub-basis's layout: per agent [N, units] then the rings.
+        if self.per_agent:
+            wl = w[: n * k].reshape(n, k)[:, units].ravel()
+        else:
+            wl = w[units]
+        return phi @ np.concatenate([wl, w[len(self.names) - self.n_rings:][rings]])
