@@ -29,12 +29,13 @@ def _brute(basis: LocalReLUBasis, states: np.ndarray) -> np.ndarray:
             for j, c in enumerate(basis.centres.numpy()):
                 value = max(0.0, 1.0 - norm(s[i, :2] - c) / basis.radius)
                 out[m, i * k + j if basis.per_agent else j] += value
-        for r, centre in enumerate(basis.rings.numpy()):
+        for r, (centre, width) in enumerate(zip(basis.rings.numpy(),
+                                                basis.ring_widths.numpy(), strict=True)):
             for a in range(n):
                 for b in range(a + 1, n):
                     gap = abs(norm(s[a, :2] - s[b, :2]) - centre)
                     out[m, len(basis.names) - basis.n_rings + r] += max(
-                        0.0, 1.0 - gap / basis.ring_width)
+                        0.0, 1.0 - gap / width)
     return out
 
 
@@ -54,6 +55,22 @@ def test_the_units_are_the_brute_force_loop(per_agent):
     else:
         assert basis.names[1] == "local1" and np.allclose(shares[1], 1 / 3)
     assert basis.names[-1] == "ring3" and np.allclose(shares[-1], 1 / 3)
+
+
+def test_the_rings_are_fine_near_zero_separation_and_stop_at_their_range():
+    basis = LocalReLUBasis(n_agents=2, bounds=[[0, 4], [0, 6]], n_centres=3, n_rings=4)
+    assert basis.ring_range == 2.0  # half the shorter side
+    np.testing.assert_allclose(basis.rings.numpy(), [0, 0.125, 0.5, 1.125])
+    np.testing.assert_allclose(basis.ring_widths.numpy(), [0.125, 0.375, 0.625, 0.875])
+    states = np.zeros((3, 2, 4))
+    states[:, 1, 0] = [0.0, 0.1, 2.5]  # separations 0, 0.1 and beyond the range
+    rings = basis(torch.from_numpy(states)).numpy()[:, -4:]
+    # each ring reaches to the next ring's centre: 1 - |s - c_r| / w_r
+    np.testing.assert_allclose(rings[0], [1.0, 1 - 0.125 / 0.375, 1 - 0.5 / 0.625, 0.0])
+    sep = float(basis._norm(torch.tensor([0.1, 0.0], dtype=torch.float64)))  # ν, ≈ 0.1
+    np.testing.assert_allclose(rings[1], [1 - sep / 0.125, 1 - abs(sep - 0.125) / 0.375,
+                                          1 - (0.5 - sep) / 0.625, 0.0])
+    assert rings[2].sum() == 0  # nothing beyond the range
 
 
 def test_a_unit_is_one_at_its_centre_and_zero_beyond_its_radius():
@@ -133,7 +150,7 @@ def test_the_weights_know_nothing_of_the_obstacles(experiment, cost, moved):
     assert isinstance(a, LocalReLUBasis)
     sa, sb = a.state_dict(), b.state_dict()
     assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
-    assert a.radius == b.radius and a.ring_width == b.ring_width
+    assert a.radius == b.radius and a.ring_range == b.ring_range
 
 
 def test_settings_are_checked():

@@ -252,6 +252,14 @@ def test_the_mpe_quick_config_runs_end_to_end(cost, tmp_path):
         assert 0 <= r["region_recall"] <= r["region_recall_bound"] + 1e-12 <= 1 + 1e-12
         assert 0 <= r["region_precision"] <= r["region_precision_determined"] <= 1
     assert (tmp_path / "region_D-ICRL_1.png").stat().st_size > 0
+    # the study that scores finished runs rebuilds the same test set from the config
+    from studies.region_scores import scores
+
+    again = {(r["method"], r["learner"]): r for r in scores(tmp_path)}
+    for name in ("D-ICRL", "C-ICRL"):
+        for v, row in enumerate(res["methods"][name]["learners"]):
+            for key in ("region_recall", "region_precision", "region_recall_bound"):
+                assert again[(name, v + 1)][key] == row[key], (name, v, key)
 
 
 def test_a_cost_basis_that_can_express_nothing_is_refused_before_training(tmp_path):

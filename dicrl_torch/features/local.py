@@ -15,12 +15,12 @@ unit is *local*:
 The centres spread over the box an agent can reach by farthest-point sampling of a
 seeded uniform pool (no two close, no region left out), and ``ρ`` is the pool's covering
 radius in that norm (plus the pool's spacing) times ``overlap``: every reachable position
-lies in some feature's support. Pairs
-of agents get units of their separation ``ν(x_i - x_j)`` instead, rings
-``ReLU(1 - |ν - c_r| / w)`` at evenly spaced separations from 0 (pairwise constraints such
-as a minimum distance are regions of it). Nothing is read from the game but the box and
-the number of agents: moving an obstacle leaves every weight as it was
-(tests/test_local_basis.py).
+lies in some feature's support. Pairs of agents get units of their separation
+``ν(x_i - x_j)`` instead, rings ``ReLU(1 - |ν - c_r| / w_r)`` at separations from 0 to
+``ring_range``, spaced quadratically: a minimum distance is a region of the separation, and
+the short range is where pairwise constraints live, so they are fine there and coarse far
+out. Nothing is read from the game but the box and the number of agents: moving an
+obstacle leaves every weight as it was (tests/test_local_basis.py).
 
 What it can and cannot express (docs/design.md §6, "Deep cost features"): a forbidden
 region is recovered where it is covered by the supports of features that no
@@ -75,6 +75,8 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         bounds: ``((x_lo, x_hi), (y_lo, y_hi))``, the box an agent can reach.
         n_centres: ``K`` position units.
         n_rings: ``R`` separation units (0: none, a game without pairwise constraints).
+        ring_range: the largest separation they cover (default: half the box's shorter
+            side); their centres lie at ``ring_range (r / R)²``, finer near 0.
         directions: ``M`` directions of the polygonal norm (``2M``-gon supports).
         overlap: the support radius over the centres' covering radius (>= 1: every
             reachable position lies in some support; larger: more overlap, coarser).
@@ -89,7 +91,8 @@ class LocalReLUBasis(ContinuousFeatureBasis):
 
     def __init__(self, *, n_agents: int, bounds: Sequence[Sequence[float]],
                  n_centres: int = 144, n_rings: int = 24, directions: int = 6,
-                 overlap: float = 1.0, per_agent: bool = False, agent_prefix: str = "agent",
+                 ring_range: float | None = None, overlap: float = 1.0,
+                 per_agent: bool = False, agent_prefix: str = "agent",
                  seed: int = 0, position_columns: Sequence[int] = (0, 1),
                  state_dim: int | None = None) -> None:
         super().__init__()
@@ -123,14 +126,19 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         gap = np.abs((pool[:, None, :] - centres[None]) @ directions_.T).sum(-1).min(1)
         spacing = math.sqrt(float(np.prod(b[:, 1] - b[:, 0])) / len(pool))
         self.radius = self.overlap * (float(gap.max()) + spacing)
-        diagonal = float(np.linalg.norm(b[:, 1] - b[:, 0]))
-        self.ring_width = diagonal / max(r, 1)
-        rings = self.ring_width * np.arange(r)  # from separation 0
+        reach = 0.5 * float((b[:, 1] - b[:, 0]).min()) if ring_range is None \
+            else check_positive("ring_range", ring_range)
+        # Centres at reach (r/R)²: fine where separations are small (a minimum distance,
+        # a collision), coarse far out; each ring's half-width is its spacing there.
+        grid = reach * (np.arange(r + 1) / max(r, 1)) ** 2
+        rings, widths = grid[:-1], np.diff(grid)
+        self.ring_range = reach
         self.register_buffer("centres", torch.tensor(centres))
         self.register_buffer("directions", torch.tensor(directions_))
         self.register_buffer("rings", torch.tensor(rings))
+        self.register_buffer("ring_widths", torch.tensor(widths))
         self.register_buffer("_columns", torch.tensor(self.position_columns), persistent=False)
-        self.n_centres, self.n_rings = k, r
+        self.n_centres, self.n_rings, self.ring_margin = k, r, 0.0
         n_pairs = self.n_agents * (self.n_agents - 1) // 2
         self.max_value = float(max(1 if per_agent else self.n_agents, n_pairs if r else 0, 1))
         if per_agent:
@@ -161,7 +169,8 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         i, j = torch.triu_indices(n, n, 1, device=states.device)
         separation = self._norm(pos[..., i, :] - pos[..., j, :])  # [..., P]
         gap = (separation.unsqueeze(-1) - self.rings.to(states.dtype)).abs()
-        rings = torch.relu(1.0 - gap / self.ring_width).sum(-2)  # [..., R]
+        width = self.ring_widths.to(states.dtype) + self.ring_margin
+        rings = torch.relu(1.0 - gap / width).sum(-2)  # [..., R]
         return torch.cat([local, rings], -1)
 
     # ---- what a planner asks of a cost basis -----------------------------------------
@@ -175,7 +184,7 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         if not np.isfinite(margin) or margin < 0:
             raise ValueError(f"margin must be a finite number >= 0, got {margin!r}.")
         grown = copy.deepcopy(self)
-        grown.radius, grown.ring_width = self.radius + margin, self.ring_width + margin
+        grown.radius, grown.ring_margin = self.radius + margin, self.ring_margin + margin
         return grown
 
     def dot(self, states: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -195,6 +204,7 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         sub._buffers = dict(self._buffers)
         sub.centres = self.centres[torch.as_tensor(units, dtype=torch.long)]
         sub.rings = self.rings[torch.as_tensor(rings, dtype=torch.long)]
+        sub.ring_widths = self.ring_widths[torch.as_tensor(rings, dtype=torch.long)]
         sub.n_centres, sub.n_rings = len(units), len(rings)
         phi = sub.compute(torch.as_tensor(states)).numpy()
         # Weights in the sub-basis's layout: per agent [N, units] then the rings.
