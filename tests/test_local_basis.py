@@ -27,7 +27,7 @@ def _brute(basis: LocalReLUBasis, states: np.ndarray) -> np.ndarray:
     for m, s in enumerate(states):
         for i in range(n):
             for j, c in enumerate(basis.centres.numpy()):
-                value = max(0.0, 1.0 - norm(s[i, :2] - c) / basis.radius)
+                value = max(0.0, 1.0 - norm(s[i, :2] - c) / float(basis.radii[j]))
                 out[m, i * k + j if basis.per_agent else j] += value
         for r, (centre, width) in enumerate(zip(basis.rings.numpy(),
                                                 basis.ring_widths.numpy(), strict=True)):
@@ -41,17 +41,19 @@ def _brute(basis: LocalReLUBasis, states: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("per_agent", [False, True])
 def test_the_units_are_the_brute_force_loop(per_agent):
-    basis = LocalReLUBasis(n_agents=3, bounds=BOX, n_centres=7, n_rings=4, directions=3,
-                           per_agent=per_agent, seed=2)
+    basis = LocalReLUBasis(n_agents=3, bounds=BOX, n_centres=7, scales=(1, 2), n_rings=4,
+                           directions=3, per_agent=per_agent, seed=2)
     states = np.random.default_rng(0).uniform(-1.5, 1.5, size=(40, 3, 4))
     phi = basis(torch.from_numpy(states)).numpy()
     np.testing.assert_allclose(phi, _brute(basis, states), atol=1e-12)
-    assert basis.dim == (21 if per_agent else 7) + 4
+    assert basis.n_centres == 7 + 2  # 7 / 2² rounds to 2 coarse units, twice as wide
+    assert basis.radii[7] > 1.5 * basis.radii[0]
+    assert basis.dim == (27 if per_agent else 9) + 4
     assert phi.min() >= 0 and phi.max() <= basis.max_value
     assert (phi == 0).mean() > 0.3  # exact zeros outside the supports
     shares = basis.agent_shares().numpy()
     if per_agent:
-        assert basis.names[8] == "agent1/local1" and shares[8].tolist() == [0, 1, 0]
+        assert basis.names[10] == "agent1/local1" and shares[10].tolist() == [0, 1, 0]
     else:
         assert basis.names[1] == "local1" and np.allclose(shares[1], 1 / 3)
     assert basis.names[-1] == "ring3" and np.allclose(shares[-1], 1 / 3)

@@ -73,7 +73,11 @@ class LocalReLUBasis(ContinuousFeatureBasis):
     Args:
         n_agents: ``N``.
         bounds: ``((x_lo, x_hi), (y_lo, y_hi))``, the box an agent can reach.
-        n_centres: ``K`` position units.
+        n_centres: ``K`` position units at the finest scale.
+        scales: unit sizes, as multiples of the finest: at scale ``m``, ``K / m²`` units
+            spread and sized as the finest are (so ``m`` times wider). Evidence that a
+            policy entered part of a forbidden region then reaches as far as the
+            experts' data allows: a coarse unit no expert enters is learned whole.
         n_rings: ``R`` separation units (0: none, a game without pairwise constraints).
         ring_range: the largest separation they cover (default: half the box's shorter
             side); their centres lie at ``ring_range (r / R)²``, finer near 0.
@@ -90,7 +94,8 @@ class LocalReLUBasis(ContinuousFeatureBasis):
     """
 
     def __init__(self, *, n_agents: int, bounds: Sequence[Sequence[float]],
-                 n_centres: int = 144, n_rings: int = 24, directions: int = 6,
+                 n_centres: int = 144, scales: Sequence[int] = (1,), n_rings: int = 24,
+                 directions: int = 6,
                  ring_range: float | None = None, overlap: float = 1.0,
                  per_agent: bool = False, agent_prefix: str = "agent",
                  seed: int = 0, position_columns: Sequence[int] = (0, 1),
@@ -116,16 +121,25 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         self.position_columns = check_position_columns(position_columns, self.state_dim)
         rng = np.random.default_rng([check_int("seed", seed, 0), 52])
         pool = rng.uniform(b[:, 0], b[:, 1], size=(max(64 * k, 4096), 2))
-        centres, _ = farthest_points(pool, k, rng)
+        scales = tuple(check_int("scales", m) for m in scales)
+        if not scales or len(set(scales)) != len(scales):
+            raise ValueError(f"scales must be distinct positive ints, got {scales!r}.")
         angle = rng.uniform(0.0, math.pi / m) + math.pi * np.arange(m) / m
         # π / (2M) Σ_m |u_m · v| is |v| on average over v's direction (E|cos| = 2/π).
         scale = math.pi / (2 * m)
         directions_ = scale * np.stack([np.cos(angle), np.sin(angle)], 1)  # [M, 2]
-        # The covering radius in the units' own norm, plus the pool's spacing (a position
-        # between pool points): every reachable position lies in some support.
-        gap = np.abs((pool[:, None, :] - centres[None]) @ directions_.T).sum(-1).min(1)
+        # Per scale: the covering radius in the units' own norm, plus the pool's spacing
+        # (a position between pool points): every reachable position lies in a support.
         spacing = math.sqrt(float(np.prod(b[:, 1] - b[:, 0])) / len(pool))
-        self.radius = self.overlap * (float(gap.max()) + spacing)
+        centres, radii = [], []
+        for m in scales:
+            c, _ = farthest_points(pool, max(1, round(k / m**2)), rng)
+            gap = np.abs((pool[:, None, :] - c[None]) @ directions_.T).sum(-1).min(1)
+            centres.append(c)
+            radii.append(np.full(len(c), self.overlap * (float(gap.max()) + spacing)))
+        centres, radii = np.concatenate(centres), np.concatenate(radii)
+        k = len(centres)
+        self.scales = scales
         reach = 0.5 * float((b[:, 1] - b[:, 0]).min()) if ring_range is None \
             else check_positive("ring_range", ring_range)
         # Centres at reach (r/R)²: fine where separations are small (a minimum distance,
@@ -134,11 +148,13 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         rings, widths = grid[:-1], np.diff(grid)
         self.ring_range = reach
         self.register_buffer("centres", torch.tensor(centres))
+        self.register_buffer("radii", torch.tensor(radii))
         self.register_buffer("directions", torch.tensor(directions_))
         self.register_buffer("rings", torch.tensor(rings))
         self.register_buffer("ring_widths", torch.tensor(widths))
         self.register_buffer("_columns", torch.tensor(self.position_columns), persistent=False)
-        self.n_centres, self.n_rings, self.ring_margin = k, r, 0.0
+        self.n_centres, self.n_rings = k, r
+        self.unit_margin = self.ring_margin = 0.0  # grown by dilated()
         n_pairs = self.n_agents * (self.n_agents - 1) // 2
         self.max_value = float(max(1 if per_agent else self.n_agents, n_pairs if r else 0, 1))
         if per_agent:
@@ -147,6 +163,11 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         else:
             self.names = [f"local{j}" for j in range(k)]
         self.names += [f"ring{j}" for j in range(r)]
+
+    @property
+    def radius(self) -> float:
+        """The finest units' support radius ``ρ`` (grown by :meth:`dilated`)."""
+        return float(self.radii.min()) + self.unit_margin
 
     def _norm(self, v: torch.Tensor) -> torch.Tensor:
         """The polygonal norm ``[...]`` of vectors ``[..., 2]``: the hidden ReLU layer
@@ -161,7 +182,8 @@ class LocalReLUBasis(ContinuousFeatureBasis):
                              f"position_columns to the columns of x and y.")
         pos = states.index_select(-1, self._columns)  # [..., N, 2]
         centres = self.centres.to(states.dtype)
-        local = torch.relu(1.0 - self._norm(pos.unsqueeze(-2) - centres) / self.radius)
+        radii = self.radii.to(states.dtype) + self.unit_margin
+        local = torch.relu(1.0 - self._norm(pos.unsqueeze(-2) - centres) / radii)
         local = local.flatten(-2) if self.per_agent else local.sum(-2)  # [..., N K] / [..., K]
         if not self.n_rings:
             return local
@@ -184,7 +206,8 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         if not np.isfinite(margin) or margin < 0:
             raise ValueError(f"margin must be a finite number >= 0, got {margin!r}.")
         grown = copy.deepcopy(self)
-        grown.radius, grown.ring_margin = self.radius + margin, self.ring_margin + margin
+        grown.unit_margin, grown.ring_margin = self.unit_margin + margin, \
+            self.ring_margin + margin
         return grown
 
     def dot(self, states: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -203,6 +226,7 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         units = np.unique(local % k) if self.per_agent else local
         sub._buffers = dict(self._buffers)
         sub.centres = self.centres[torch.as_tensor(units, dtype=torch.long)]
+        sub.radii = self.radii[torch.as_tensor(units, dtype=torch.long)]
         sub.rings = self.rings[torch.as_tensor(rings, dtype=torch.long)]
         sub.ring_widths = self.ring_widths[torch.as_tensor(rings, dtype=torch.long)]
         sub.n_centres, sub.n_rings = len(units), len(rings)
