@@ -34,6 +34,7 @@ from matplotlib.patches import Patch
 
 from dicrl_torch.envs.grid import GridLayout
 from dicrl_torch.envs.gridworld_env import render_grid
+from dicrl_torch.envs.parallel import agg_axes, axes_image
 
 # (history key, table-row key, panel title): the panels of Fig. 2c-2g, in the paper's
 # order. A history holds "CR" (the mean return of the evaluation episodes), the table
@@ -530,3 +531,23 @@ def save_png(path: str | Path, image: np.ndarray) -> Path:
     path = Path(path)
     matplotlib.image.imsave(path, image)
     return path
+
+def feature_strip(learned: np.ndarray, true: np.ndarray | None, *, title: str = ""
+                  ) -> np.ndarray:
+    """``[l]`` learned (filled red) and true (outlined black) features as one strip of
+    squares, wrapped every 40, as an ``H x W x 3`` uint8 image."""
+    from matplotlib.patches import Rectangle
+
+    learned = np.asarray(learned, dtype=bool)
+    width = min(40, len(learned))
+    rows = -(-len(learned) // width)
+    ax = agg_axes((max(3.0, 0.15 * width + 1), 0.2 * rows + 1.2))
+    for j in range(len(learned)):
+        x, y = j % width, -(j // width)
+        ax.add_patch(Rectangle((x, y), 0.9, 0.9, color="red" if learned[j] else "0.9"))
+        if true is not None and true[j]:
+            ax.add_patch(Rectangle((x, y), 0.9, 0.9, fill=False, ec="k", lw=1.2))
+    ax.set_xlim(-0.2, width)
+    ax.set_ylim(-rows + 0.8, 1.1)
+    ax.set_axis_off()
+    return axes_image(ax, title)

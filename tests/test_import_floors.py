@@ -17,7 +17,7 @@ FLOORS: list[set[str]] = [
     {"io", "logger", "checks"},          # utilities
     {"envs", "features", "demos"},       # environments, feature bases, trajectory data
     {"solvers"},                         # inner solvers and the experts' policies
-    {"metrics", "figures", "comm"},      # evaluation, pictures, communication
+    {"metrics", "region", "figures", "comm"},  # evaluation, pictures, communication
     {"algos"},                           # D-ICRL, learner models, baselines
     {"runs"},                            # the runner, tasks, checkpoints
     {"bench"},                           # command-line benchmark

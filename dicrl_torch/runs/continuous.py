@@ -32,7 +32,6 @@ import dataclasses
 import hashlib
 import inspect
 import json
-import re
 import shutil
 import stat
 import time
@@ -49,18 +48,10 @@ from dicrl_torch.algos.models import SACLearnerModel
 from dicrl_torch.checks import check_int
 from dicrl_torch.demos import partition_demonstrations
 from dicrl_torch.demos.continuous import save_continuous_demonstrations
-from dicrl_torch.envs.parallel import agg_axes, axes_image, figure_image
 from dicrl_torch.features.continuous import ContinuousFeatureBasis
 from dicrl_torch.io import atomic_write
 from dicrl_torch.metrics import false_negative_rate, false_positive_rate, learned_constraints
-from dicrl_torch.region import (
-    RegionTruth,
-    feature_support,
-    predicted_forbidden,
-    recall_bound,
-    region_scores,
-    undetermined_states,
-)
+from dicrl_torch.runs.regions import RegionScoring
 from dicrl_torch.runs.settings import (
     EVAL_ACTIONS,
     EVAL_POLICIES,
@@ -72,7 +63,7 @@ from dicrl_torch.runs.settings import (
 from dicrl_torch.runs.task import Rollouts, Task
 
 __all__ = ["EVAL_ACTIONS", "EVAL_POLICIES", "FINAL_SCORES", "GREEDY_BASELINE", "SACTask",
-           "derived_seed", "feature_strip"]
+           "derived_seed"]
 
 WARMUP_FILE = "warmup.pt"
 """The run directory's file of the SAC warm-up (:meth:`SACTask.bind_run_dir`)."""
@@ -104,7 +95,7 @@ def _file_stamp(path: Path) -> tuple[int, int, int] | None:
     return (st.st_ino, st.st_mtime_ns, st.st_size) if stat.S_ISREG(st.st_mode) else None
 
 
-class SACTask(Task):
+class SACTask(RegionScoring, Task):
     """A continuous game's task, for the runner (:class:`~dicrl_torch.runs.task.Task`;
     module docstring): usable as it is for any game of the joint-env protocol, or
     subclassed for a game's own metrics and pictures.
@@ -273,14 +264,6 @@ class SACTask(Task):
         print(self.describe(), flush=True)
         self.print_expressivity()
 
-    def print_expressivity(self) -> None:
-        """One line: each learner's :meth:`expressivity` (nothing without a truth)."""
-        bounds = self.expressivity()
-        if bounds is not None:
-            print("the most of the forbidden region each learned set can cover with this "
-                  "cost basis (an upper bound on region recall): "
-                  + ", ".join(f"learner {v + 1} {b:.2f}" for v, b in enumerate(bounds[:-1]))
-                  + f", C-ICRL {bounds[-1]:.2f}", flush=True)
 
     def initial_weights(self) -> dict[str, float]:
         """``η(0)`` and ``ω_c(0)`` as the trainer takes them (``DICRL``'s
@@ -509,95 +492,6 @@ class SACTask(Task):
                 "n_learned": int(mask.sum()), "constraints": names,
                 **self.region_rates(mask)}
 
-    # ------------------------------------------------------------------ regions
-    region_test_states: int = 20_000
-    """Joint states in the region scores' test set (:mod:`dicrl_torch.region`)."""
-    REGION_KEYS = ("region_recall", "region_precision", "region_precision_determined",
-                   "region_iou", "region_undetermined")
-
-    def region_truth(self) -> RegionTruth | None:
-        """The game's forbidden joint states (:class:`~dicrl_torch.region.RegionTruth`);
-        None here: a game of unknown truth, whose region scores are ``null``."""
-        return None
-
-    def region_test(self) -> dict[str, Any] | None:
-        """The region scores' test set, computed once: ``states`` ``[M, N, d_s]``,
-        ``forbidden`` and ``undetermined`` ``[M]`` bool, ``support`` ``[M, l_c]`` bool
-        (where each cost feature is positive) and the demonstrations' ``band``; None
-        without a :meth:`region_truth`."""
-        if not hasattr(self, "_region_test"):
-            truth = self.region_truth()
-            if truth is None:
-                self._region_test = None
-            else:
-                states = truth.test_states(self.region_test_states, seed=self.seed)
-                forbidden = np.asarray(truth.forbidden(states), dtype=bool)
-                d = self.demos
-                episodes = [d.states[k, :int(d.lengths[k]) + 1] for k in range(len(d.lengths))]
-                undetermined, band = undetermined_states(states, ~forbidden, episodes)
-                self._region_test = {"states": states, "forbidden": forbidden,
-                                     "undetermined": undetermined, "band": band,
-                                     "support": feature_support(self.cost_basis, states),
-                                     "kinds": truth.kinds}
-        return self._region_test
-
-    def constrainable(self) -> np.ndarray:
-        """``[n_shards + 1, l_c]`` bool: per learner (the shards, then C-ICRL holding them
-        all) the cost features that can become constraints at all: positive on none of
-        its demonstrated states and none of the start states (budget 0: a feature its
-        experts make positive is no constraint of theirs, and the trainer pins the start
-        states' features to 0)."""
-        if not hasattr(self, "_constrainable"):
-            start = feature_support(self.cost_basis, np.asarray(self.start_states)).any(0) \
-                if self.start_states is not None else np.zeros(self.cost_basis.dim, bool)
-            rows = []
-            for d in (*self.shards, self.demos):
-                states = np.concatenate([d.states[k, :int(d.lengths[k]) + 1]
-                                         for k in range(len(d.lengths))])
-                rows.append(~(feature_support(self.cost_basis, states).any(0) | start))
-            self._constrainable = np.stack(rows)
-        return self._constrainable
-
-    def check_expressive(self) -> None:
-        """Refuse a cost basis of which no learner can learn any constraint (every
-        feature positive on its demonstrations or the start states: e.g. a network
-        ending in a sigmoid, positive everywhere), naming the fix, before training."""
-        if not self.constrainable().any():
-            raise ValueError(
-                f"The cost basis {getattr(self.cost_basis, 'label', type(self.cost_basis))} "
-                f"can express no constraint: every one of its {self.cost_basis.dim} "
-                f"features is positive on every learner's demonstrations or on the start "
-                f"states, and with budget 0 a feature's constraint set is where it is "
-                f"positive (paper §3), so none can be learned (a network ending in a "
-                f"sigmoid is positive everywhere). Use features with exact zeros: e.g. "
-                f"features/cost=local_relu (LocalReLUBasis), or end your network with a "
-                f"ReLU clipped to max_value (torch.clamp(x, 0, max_value)) so that each "
-                f"feature is 0 outside a region.")
-
-    def expressivity(self) -> list[float] | None:
-        """Per learner (the shards in order, then C-ICRL holding them all), the most of
-        the forbidden region its learned set can cover with this cost basis
-        (:func:`~dicrl_torch.region.recall_bound`: the share of forbidden test states in
-        the support of a feature that neither its demonstrations nor the start states
-        make positive); None without a :meth:`region_truth`. Computed from the shards and
-        the basis alone, before training."""
-        test = self.region_test()
-        if test is None:
-            return None
-        return [recall_bound(test["support"], test["forbidden"], usable)
-                for usable in self.constrainable()]
-
-    def region_rates(self, mask: np.ndarray) -> dict[str, float | None]:
-        """The learned set ``mask`` ``[l_c]`` bool scored as a classifier of the test
-        states (:func:`~dicrl_torch.region.region_scores`, keys ``region_*``); every
-        value None without a :meth:`region_truth`."""
-        test = self.region_test()
-        if test is None:
-            return dict.fromkeys(self.REGION_KEYS)
-        scores = region_scores(test["forbidden"], predicted_forbidden(test["support"], mask),
-                               test["undetermined"])
-        return {f"region_{k}": v for k, v in scores.items()}
-
     def learned_mask(self, row: dict) -> np.ndarray:
         """``[l_c]`` bool: a row's learned constraints (its ``constraints`` names)."""
         mask = np.zeros(self.cost_basis.dim, dtype=bool)
@@ -712,14 +606,6 @@ class SACTask(Task):
                    final_checks=solver.last_checks, region_recall_bound=self._bound(trainer, i))
         return row, paths
 
-    def _bound(self, trainer: DICRL, i: int) -> float | None:
-        """The :meth:`expressivity` of ``trainer``'s local learner ``i`` (C-ICRL: all
-        the demonstrations)."""
-        bounds = self.expressivity()
-        if bounds is None:
-            return None
-        return bounds[-1] if trainer.n_learners == 1 else bounds[trainer.local[i]]
-
     @staticmethod
     def _planning_label(trainer: DICRL, i: int) -> str:
         """The planned evaluation's bar: which learner of how many (C-ICRL: the one)."""
@@ -781,6 +667,8 @@ class SACTask(Task):
         """The cost features as a strip: learned ones filled (red), true ones outlined
         (black), without the ``rollouts`` (a strip has no space to draw them in); a game
         with a map of its own overrides it."""
+        from dicrl_torch.figures import feature_strip
+
         return feature_strip(self.learned_mask(row), self.true,
                              title=f"{label}: {int(self.learned_mask(row).sum())} learned "
                                    f"constraints of {self.cost_basis.dim} features")
@@ -799,75 +687,4 @@ class SACTask(Task):
             histories, true=self.true, threshold=self.threshold,
             title=f"{experiment}: the cost weights by outer iteration")}
 
-    def region_maps(self, methods: dict, experiment: str) -> dict[str, np.ndarray]:
-        """Per learned row ``region_<method>_<v>``: over the positions an agent can
-        reach, the share of the region test set's states with an agent there that the
-        learned set forbids, beside the share the truth forbids (the region itself, plus
-        the pairwise part spread thin); none without a :meth:`region_truth`."""
-        test = self.region_test()
-        if test is None:
-            return {}
-        truth = self.region_truth()
-        images = {}
-        for name, m in methods.items():
-            for v, row in enumerate(m["learners"]):
-                if row.get("constraints") is None:
-                    continue
-                predicted = predicted_forbidden(test["support"], self.learned_mask(row))
-                tag = "region_" + re.sub(r"[^\w.-]", "", name) + f"_{v + 1}"
-                images[tag] = region_map(
-                    test["states"], predicted, test["forbidden"], truth.low, truth.high,
-                    title=f"{experiment}, {name} {v + 1}: forbidden share by position "
-                          f"(R_rec {row.get('region_recall', 0):.2f}, "
-                          f"R_prec {row.get('region_precision', 0):.2f})")
-        return images
 
-
-def feature_strip(learned: np.ndarray, true: np.ndarray | None, *, title: str = ""
-                  ) -> np.ndarray:
-    """``[l]`` learned (filled red) and true (outlined black) features as one strip of
-    squares, wrapped every 40, as an ``H x W x 3`` uint8 image."""
-    from matplotlib.patches import Rectangle
-
-    learned = np.asarray(learned, dtype=bool)
-    width = min(40, len(learned))
-    rows = -(-len(learned) // width)
-    ax = agg_axes((max(3.0, 0.15 * width + 1), 0.2 * rows + 1.2))
-    for j in range(len(learned)):
-        x, y = j % width, -(j // width)
-        ax.add_patch(Rectangle((x, y), 0.9, 0.9, color="red" if learned[j] else "0.9"))
-        if true is not None and true[j]:
-            ax.add_patch(Rectangle((x, y), 0.9, 0.9, fill=False, ec="k", lw=1.2))
-    ax.set_xlim(-0.2, width)
-    ax.set_ylim(-rows + 0.8, 1.1)
-    ax.set_axis_off()
-    return axes_image(ax, title)
-
-
-def region_map(states: np.ndarray, predicted: np.ndarray, forbidden: np.ndarray,
-               low: Sequence[float], high: Sequence[float], *, title: str = "",
-               bins: int = 30) -> np.ndarray:
-    """Two panels over an agent's positions ``(x, y)`` in the box ``low``-``high``: the
-    share of joint states ``[M, N, d_s]`` with an agent in each bin that ``predicted``
-    ``[M]`` marks (the learned set), and that ``forbidden`` ``[M]`` marks (the truth);
-    an ``H x W x 3`` uint8 image."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    pos = states[..., :2].reshape(-1, 2)
-    n = states.shape[1]
-    edges = [np.linspace(low[k], high[k], bins + 1) for k in range(2)]
-    count, _, _ = np.histogram2d(pos[:, 0], pos[:, 1], bins=edges)
-    fig = Figure(figsize=(7.0, 3.6), dpi=80)
-    FigureCanvasAgg(fig)
-    for k, (mask, label) in enumerate(((predicted, "learned set"), (forbidden, "truth"))):
-        hit, _, _ = np.histogram2d(pos[:, 0], pos[:, 1], bins=edges,
-                                   weights=np.repeat(np.asarray(mask, float), n))
-        ax = fig.add_subplot(1, 2, k + 1)
-        image = ax.imshow((hit / np.maximum(count, 1)).T, origin="lower", vmin=0, vmax=1,
-                          extent=(low[0], high[0], low[1], high[1]), cmap="Reds")
-        ax.set_title(label, fontsize=8)
-        ax.set_aspect("equal")
-    fig.colorbar(image, ax=fig.axes, shrink=0.8, label="share of states forbidden")
-    fig.suptitle(title, fontsize=8)
-    return figure_image(fig)
