@@ -123,6 +123,12 @@ def test_dilated_grows_the_supports_and_dot_keeps_only_the_weighted_units():
     w[[1, 5, 37, basis.dim - 8, basis.dim - 3]] = [0.7, 0.5, 0.8, 0.6, 0.9]
     np.testing.assert_allclose(basis.dot(states, w), basis.numpy_features(states) @ w,
                                atol=1e-12)
+    # the planner's batches: positions beyond the box too, every unit weighted, grown
+    outside = np.random.default_rng(4).uniform(-1, 11, size=(2000, 2, 4))
+    dense = np.random.default_rng(5).uniform(0, 1, basis.dim)
+    for b in (basis, wide):
+        np.testing.assert_allclose(b.dot(outside, dense), b.numpy_features(outside) @ dense,
+                                   atol=1e-12)
     assert np.all(basis.dot(states, np.zeros(basis.dim)) == 0)
     with pytest.raises(ValueError, match="margin"):
         basis.dilated(-1.0)
