@@ -168,6 +168,17 @@ def _targets(node, path: str = "") -> dict[str, str]:
     return found
 
 
+def _same_values(option: DictConfig, node) -> bool:
+    """Whether ``node`` holds every plain (not interpolated) top-level value of the option
+    file ``option``."""
+    for key in option:
+        if OmegaConf.is_interpolation(option, key) or OmegaConf.is_config(option[key]):
+            continue
+        if not OmegaConf.is_dict(node) or key not in node or node[key] != option[key]:
+            return False
+    return True
+
+
 def misfit_options(cfg) -> dict[str, str]:
     """The options of ``KIND_GROUPS`` that serve another kind of environment or another game:
     the config path of the option's node -> what it is, whose, and the group's that fit."""
@@ -179,8 +190,10 @@ def misfit_options(cfg) -> dict[str, str]:
         if theirs is None or (theirs == kind and their_game in (None, game)):
             continue
         options, chosen = _options(group), chosen or _chosen_options()
-        name = next((f"{group}={o}" for o, n in options.items()
-                     if _identity(group, n) == _identity(group, node)), None)
+        same = [o for o, n in options.items() if _identity(group, n) == _identity(group, node)]
+        # Options of one class (local_relu, local_relu_drones): the one whose values match.
+        name = next((f"{group}={o}" for o in sorted(
+            same, key=lambda o: not _same_values(options[o], node))), None)
         if name is None and group == "baselines":  # rows of its own: the rows' check says
             continue
         name = name or f"{path}._target_={_identity(group, node)}"

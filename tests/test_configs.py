@@ -23,8 +23,8 @@ from common import drone_env_factory  # noqa: E402
 # What marks an option of a continuous game in its YAML (a drone, continuous or MPE
 # basis, an arena, the SAC solver, the SAC tasks' greedy row); every other option is the
 # grid world's, but baselines=none, which fits both.
-DRONE_MARKERS = ("features.drone", "features.continuous", "features.mpe", "arena:",
-                 "solvers.sac", "M(C)E-greedy")
+DRONE_MARKERS = ("features.drone", "features.continuous", "features.mpe", "features.local",
+                 "arena:", "solvers.sac", "M(C)E-greedy")
 
 
 def group_options(group: str, world: str | None = None) -> list[str]:

@@ -206,17 +206,20 @@ def test_table2_config_is_checked():
             common.check_config(_compose(bad))
 
 
+RBF = "features.cost._target_=dicrl_torch.features.drone.RBFCostBasis"
+
+
 def test_a_margin_needs_a_cost_basis_that_can_grow():
     """final_margin grows the cost basis's cells: a basis without dilated() (the RBF
-    bumps) is refused when the task is built, naming the fix."""
+    bumps, no longer a config option: positive everywhere, a run refuses them) is refused
+    when the task is built, naming the fix."""
     from common import drone_task
 
     assert drone_task(_compose("solver.final_margin=0.2")).penalty_basis.margin == 0.2
     with pytest.raises(ValueError, match="set final_margin=0"):
-        drone_task(_compose("features/cost=rbf", "solver.final_margin=0.2",
-                            "solver.eval_policy=sac"))
+        drone_task(_compose(RBF, "solver.final_margin=0.2", "solver.eval_policy=sac"))
     with pytest.raises(ValueError, match="set solver.eval_policy=sac"):
-        drone_task(_compose("features/cost=rbf"))
+        drone_task(_compose(RBF))
     with pytest.raises(ValueError, match="solver.planner.grid_step=1.0 is invalid"):
         drone_task(_compose("solver.planner.grid_step=1.0"))
 

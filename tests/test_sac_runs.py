@@ -25,7 +25,9 @@ TRAIN = ROOT / "experiments" / "train.py"
 GAMES = {
     "drones": [*(o for o in TINY if not o.startswith("algo.outer_iterations=")),
                "solver.warmup_restarts=3", "solver.warmup_checks=2"],
-    "mpe": ["experiment=mpe_quick", "solver.solver.demo_bc=0.5",  # its loss's state too
+    # one process, as the drones' here (mpe_quick ships learner processes)
+    "mpe": ["experiment=mpe_quick", "comm=simulated",
+            "solver.solver.demo_bc=0.5",  # its loss's state too
             *(o for o in CONFIG_TINY if not o.startswith("algo.outer_iterations="))],
 }
 
