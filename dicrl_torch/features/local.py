@@ -124,6 +124,7 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         scales = tuple(check_int("scales", m) for m in scales)
         if not scales or len(set(scales)) != len(scales):
             raise ValueError(f"scales must be distinct positive ints, got {scales!r}.")
+        per_scale = [farthest_points(pool, max(1, round(k / m**2)), rng)[0] for m in scales]
         angle = rng.uniform(0.0, math.pi / m) + math.pi * np.arange(m) / m
         # π / (2M) Σ_m |u_m · v| is |v| on average over v's direction (E|cos| = 2/π).
         scale = math.pi / (2 * m)
@@ -132,8 +133,7 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         # (a position between pool points): every reachable position lies in a support.
         spacing = math.sqrt(float(np.prod(b[:, 1] - b[:, 0])) / len(pool))
         centres, radii = [], []
-        for m in scales:
-            c, _ = farthest_points(pool, max(1, round(k / m**2)), rng)
+        for c in per_scale:
             gap = np.abs((pool[:, None, :] - c[None]) @ directions_.T).sum(-1).min(1)
             centres.append(c)
             radii.append(np.full(len(c), self.overlap * (float(gap.max()) + spacing)))
