@@ -70,6 +70,16 @@ def check_position_columns(position_columns: Sequence[int],
     return tuple(int(c) for c in cols)
 
 
+def check_bounds(bounds: Any) -> np.ndarray:
+    """``bounds`` ``((x_lo, x_hi), (y_lo, y_hi))`` as a ``[2, 2]`` float64 array, finite,
+    with ``lo < hi``."""
+    b = np.asarray(bounds, dtype=np.float64)
+    if b.shape != (2, 2) or not np.isfinite(b).all() or not (b[:, 0] < b[:, 1]).all():
+        raise ValueError(f"bounds must be ((x_lo, x_hi), (y_lo, y_hi)) with lo < hi, got "
+                         f"{bounds!r}.")
+    return b
+
+
 class ContinuousFeatureBasis(nn.Module):
     """Base class of the bases over joint states ``[..., N, d_s]`` (a
     :class:`~dicrl_torch.features.base.Basis` of kind ``"continuous"``).
@@ -529,10 +539,7 @@ class PositionCellBasis(ContinuousFeatureBasis):
         super().__init__()
         self.n_agents = check_int("n_agents", n_agents)
         self.state_dim = _optional_int("state_dim", state_dim)
-        b = np.asarray(bounds, dtype=np.float64)
-        if b.shape != (2, 2) or not np.isfinite(b).all() or not (b[:, 0] < b[:, 1]).all():
-            raise ValueError(f"bounds must be ((x_lo, x_hi), (y_lo, y_hi)) with lo < hi, got "
-                             f"{bounds!r}.")
+        b = check_bounds(bounds)
         self.bounds = tuple(tuple(float(v) for v in row) for row in b)
         n = (n_per_axis, n_per_axis) if isinstance(n_per_axis, int | np.integer) \
             else tuple(n_per_axis)

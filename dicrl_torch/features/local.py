@@ -43,6 +43,7 @@ from dicrl_torch.checks import check_int, check_positive
 from dicrl_torch.features.continuous import (
     ContinuousFeatureBasis,
     _optional_int,
+    check_bounds,
     check_position_columns,
 )
 
@@ -103,10 +104,7 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         super().__init__()
         self.n_agents = check_int("n_agents", n_agents)
         self.state_dim = _optional_int("state_dim", state_dim)
-        b = np.asarray(bounds, dtype=np.float64)
-        if b.shape != (2, 2) or not np.isfinite(b).all() or not (b[:, 0] < b[:, 1]).all():
-            raise ValueError(f"bounds must be ((x_lo, x_hi), (y_lo, y_hi)) with lo < hi, got "
-                             f"{bounds!r}.")
+        b = check_bounds(bounds)
         self.bounds = tuple(tuple(float(v) for v in row) for row in b)
         k = check_int("n_centres", n_centres)
         r = check_int("n_rings", n_rings, 0)

@@ -28,6 +28,12 @@ from dicrl_torch.region import (
 __all__ = ["RegionScoring", "region_map"]
 
 
+def _episodes(demos: Any) -> list[np.ndarray]:
+    """Each demonstration's joint states ``[T_k + 1, N, d_s]``, without the padding past
+    its end."""
+    return [demos.states[k, :int(demos.lengths[k]) + 1] for k in range(len(demos.lengths))]
+
+
 class RegionScoring:
     """The region machinery of a continuous task (a mixin: it uses the task's
     ``cost_basis``, ``demos``, ``shards``, ``start_states``, ``seed`` and
@@ -55,9 +61,8 @@ class RegionScoring:
             else:
                 states = truth.test_states(self.region_test_states, seed=self.seed)
                 forbidden = np.asarray(truth.forbidden(states), dtype=bool)
-                d = self.demos
-                episodes = [d.states[k, :int(d.lengths[k]) + 1] for k in range(len(d.lengths))]
-                undetermined, band = undetermined_states(states, ~forbidden, episodes)
+                undetermined, band = undetermined_states(states, ~forbidden,
+                                                         _episodes(self.demos))
                 self._region_test = {"states": states, "forbidden": forbidden,
                                      "undetermined": undetermined, "band": band,
                                      "support": feature_support(self.cost_basis, states),
@@ -75,8 +80,7 @@ class RegionScoring:
                 if self.start_states is not None else np.zeros(self.cost_basis.dim, bool)
             rows = []
             for d in (*self.shards, self.demos):
-                states = np.concatenate([d.states[k, :int(d.lengths[k]) + 1]
-                                         for k in range(len(d.lengths))])
+                states = np.concatenate(_episodes(d))
                 rows.append(~(feature_support(self.cost_basis, states).any(0) | start))
             self._constrainable = np.stack(rows)
         return self._constrainable
