@@ -7,6 +7,8 @@
   per learner, the baselines and experts as horizontal reference lines (Fig. 2c-2g).
 - :func:`cost_weight_curves` (not in the paper): every ω_c,j against the outer
   iteration, true constraints in red, with the threshold rule's line.
+- :func:`metrics_against_bytes` (not in the paper): each learner's FPR, FNR, CR and CVR
+  against the bytes it had sent, for one run or several compared.
 - :func:`identifiability_map` (not in the paper): the true constraint cells coloured by
   their identifiability class (docs/design.md §6), optionally with a learned set as
   crosses; :func:`identifiability_legend` names the classes and the features without a
@@ -443,6 +445,63 @@ def metric_curves(histories: Mapping[str, Sequence[Mapping]], *,
                                                         mfc="none", mec="0.2", mew=1.5)
     fig.legend(handles.values(), handles.keys(), loc="outside lower center",
                ncol=min(len(handles), 6), fontsize=10, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=12)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+
+
+BYTES_METRICS = (("FPR", "FPR"), ("FNR", "FNR"), ("CR", "CR"), ("CVR", "CVR"))
+
+
+def metrics_against_bytes(histories: Mapping[str, Sequence[Mapping]], *,
+                          title: str = "") -> np.ndarray:
+    """Each learner's FPR, FNR, CR and CVR against the kilobytes it had sent (the
+    algorithm's rounds), 1 x 4 panels: what a setting of the communicator buys.
+
+    Args:
+        histories: a run's label -> its D-ICRL history (``results.json``'s
+            ``history["D-ICRL"]``), whose entries hold per-learner ``bytes_sent`` and the
+            metrics (CR and CVR where evaluated). One line per learner; several runs (e.g.
+            the exact exchange and a compressed one) share the panels, a colour each.
+
+    Returns:
+        The RGB image ``[H, W, 3]`` uint8.
+
+    Raises:
+        ValueError: no history, or one without ``bytes_sent``.
+    """
+    if not histories:
+        raise ValueError("metrics_against_bytes needs at least one D-ICRL history.")
+    fig = Figure(figsize=(16.0, 4.6), dpi=DPI, layout="constrained")
+    canvas = FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(BYTES_METRICS))
+    styles = ("-", "--", ":", "-.")
+    for r, (label, history) in enumerate(histories.items()):
+        if not history or any(h.get("bytes_sent") is None for h in history):
+            raise ValueError(f"the history of {label!r} has no 'bytes_sent': it was written "
+                             f"before the communicators counted their traffic; rerun it.")
+        kb = np.array([h["bytes_sent"] for h in history], dtype=float) / 1000  # [n, L]
+        for ax, (key, panel) in zip(axes, BYTES_METRICS, strict=True):
+            values = np.array([[np.nan] * kb.shape[1] if h.get(key) is None else h[key]
+                               for h in history], dtype=float)
+            for v in range(kb.shape[1]):
+                shown = ~np.isnan(values[:, v])
+                ax.plot(kb[shown, v], values[shown, v], styles[r % len(styles)],
+                        marker="o" if not shown.all() else None, ms=3, color=f"C{v}",
+                        label=f"{label}, learner {v + 1}")
+            ax.set_title(panel, fontsize=11)
+            ax.set_xlabel("KB sent (algorithm rounds)")
+            ax.set_xscale("log")  # runs that differ tenfold in bytes share the axis
+            if key in ("FPR", "FNR"):
+                ax.set_ylim(-0.03, 1.03)
+            ax.grid(alpha=0.3)
+    handles = {}
+    for ax in axes:
+        for h, name in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(name, h)
+    fig.legend(handles.values(), handles.keys(), loc="outside lower center",
+               ncol=min(len(handles), 4), fontsize=9, frameon=False)
     if title:
         fig.suptitle(title, fontsize=12)
     canvas.draw()

@@ -8,6 +8,7 @@ to find them, and rebuild their inputs from a seed instead of receiving tensors.
 
 from __future__ import annotations
 
+import json
 import os
 import time
 
@@ -25,6 +26,7 @@ from dicrl_torch.comm import (
     SimulatedCommunicator,
     TimeVaryingSchedule,
 )
+from dicrl_torch.comm.compression import Compression
 from dicrl_torch.comm.distributed import (
     ConfigMismatchError,
     DistributedCommunicator,
@@ -90,9 +92,18 @@ def _collectives_body(rank, world_size, init_method, seed):
     return gathered, mixed, mismatch, control
 
 
-def _trainer_body(rank, world_size, init_method, outer_iterations):
+def comm_options(options: dict) -> dict:
+    """Communicator keywords from plain values (what a spawned body receives)."""
+    options = dict(options)
+    if "bits" in options:
+        options["compression"] = Compression(bits=options.pop("bits"))
+    return options
+
+
+def _trainer_body(rank, world_size, init_method, outer_iterations, options=None):
     tiny = build_tiny()
-    with _comm(rank, world_size, init_method, record=True) as comm:
+    with _comm(rank, world_size, init_method, record=True,
+               **comm_options(options or {})) as comm:
         comm.check_same_config(f"tiny split={SPLIT} K=3 alpha_bar=0.02 rho=10")
         t = make_trainer(tiny, [shard_for_rank(tiny[3], rank)], comm)
         t.train(outer_iterations)
@@ -102,6 +113,7 @@ def _trainer_body(rank, world_size, init_method, outer_iterations):
                 "inner_processes": [h["inner_processes"] for h in t.history],
                 # plain tuples: results come back through torch.load(weights_only=True)
                 "messages": [(m.field, m.shape, m.sender) for m in comm.messages],
+                "traffic": json.dumps(comm.traffic.report(rank)),
                 "dims": (t.learner_model.cost_dim, t.learner_model.reward_dim + 1)}
 
 
@@ -185,7 +197,9 @@ def test_control_values_are_audited_and_only_known_fields_are_sent():
 
     sim = SimulatedCommunicator(2, record=True)
     assert sim.gather_control(["/runs/x", "id"], "run_directory") == [["/runs/x", "id"]] * 2
-    assert [m.field for m in sim.messages] == ["run_directory"]
+    # each learner's value, to the other: the audit has one record per sender
+    assert [(m.field, m.sender, m.recipients) for m in sim.messages] == [
+        ("run_directory", 0, (1,)), ("run_directory", 1, (0,))]
     assert set(CONTROL_FIELDS).isdisjoint(ALLOWED_FIELDS)  # never learner data
     with pytest.raises(ValueError, match="not one a run exchanges"):
         sim.gather_control([1.0, 2.0], "demonstrations")
@@ -216,6 +230,38 @@ def test_trainer_trajectories_are_identical(trainer_runs):
             assert torch.equal(r[key], expected), f"rank {rank} {key}: not bitwise equal"
         assert torch.equal(r["eta"], sim.state.eta[:, rank])
         assert r["inner_processes"] == [h["inner_processes"] for h in sim.history]
+
+
+# int8 messages of every mixed field and no redundant ω_c gather: the point-to-point
+# transport of compressed messages
+COMPRESSED = {"bits": 8, "skip_redundant_rounds": True}
+
+
+@pytest.fixture(scope="module")
+def compressed_runs():
+    tiny = build_tiny()
+    sim = make_trainer(tiny, tiny[3], SimulatedCommunicator(
+        len(SPLIT), record=True, **comm_options(COMPRESSED)))
+    sim.train(3)
+    return sim, spawn_learners(_trainer_body, len(SPLIT), args=(3, COMPRESSED),
+                               timeout_s=180)
+
+
+@pytest.mark.parametrize("which", ["trainer_runs", "compressed_runs"])
+def test_traffic_counted_on_each_rank_equals_the_simulated_count(which, request):
+    """The bytes a rank counts are those its collectives and point-to-point sends moved,
+    and equal the simulated run's count for that learner, phase by phase."""
+    sim, runs = request.getfixturevalue(which)
+    for rank, r in enumerate(runs):
+        assert json.loads(r["traffic"]) == sim.comm.traffic.report(rank)
+        assert sim.comm.traffic.bytes_sent(rank) > 0
+
+
+def test_compressed_trajectories_are_identical(compressed_runs):
+    sim, runs = compressed_runs
+    for rank, r in enumerate(runs):
+        for key in ("cost_weights", "eta_bar", "tracker"):
+            assert torch.equal(r[key], getattr(sim.state, key)[rank]), (rank, key)
 
 
 def test_privacy_audit_on_every_rank(trainer_runs):

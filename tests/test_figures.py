@@ -227,6 +227,18 @@ def test_cost_weight_curves_refuse_what_they_cannot_draw():
 
 
 # ---------------------------------------------------------------------- train.py
+def test_metrics_against_bytes_needs_the_counts():
+    from dicrl_torch.figures import metrics_against_bytes
+
+    history = [{"outer_iteration": n, "FPR": [0.1, 0.2], "FNR": [0.0, 0.0],
+                "CR": None if n else [1.0, 2.0], "CVR": None if n else [0.0, 0.1],
+                "bytes_sent": [1000 * (n + 1), 900 * (n + 1)]} for n in range(3)]
+    img = metrics_against_bytes({"exact": history, "int8": history}, title="t")
+    assert img.ndim == 3 and img.dtype == np.uint8
+    with pytest.raises(ValueError, match="no 'bytes_sent'"):
+        metrics_against_bytes({"old": [{"outer_iteration": 0, "FPR": [0.1]}]})
+
+
 def test_eval_every_is_checked():
     import common  # experiments/ is on pytest's pythonpath
     import config_checks
@@ -254,8 +266,14 @@ def test_tiny_run_records_the_curves_and_writes_the_figures(tmp_path):
             assert hist[-1]["FNR"][i] == row["FNR_before_pruning"]
             assert hist[-1]["RFD"][i] == row["RFD"]
             assert isinstance(row["constraints"], list)
+    # each D-learner's traffic: its row's total is its history's last count
+    for i, row in enumerate(res["methods"]["D-ICRL"]["learners"]):
+        sent = [h["bytes_sent"][i] for h in res["history"]["D-ICRL"]]
+        assert sent == sorted(sent) and sent[0] > 0
+        assert row["traffic"]["algorithm_bytes_sent"] == sent[-1] == 1000 * row["KB_sent"]
+    assert "KB_sent" in out.stdout
     for name in ("fig2a_true_visitation", "fig2b_learned_constraints",
-                 "fig2c-g_metric_curves", "identifiability_classes"):
+                 "fig2c-g_metric_curves", "identifiability_classes", "traffic"):
         path = tmp_path / f"{name}.png"
         assert matplotlib.image.imread(path).ndim == 3 and str(path) in out.stdout
     assert (tmp_path / "tb" / "figures").is_dir()

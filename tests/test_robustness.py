@@ -333,11 +333,14 @@ def test_a_run_stopped_after_evaluating_resumes_without_evaluating_again(tmp_pat
     assert crashed.returncode == -9, crashed.stderr[-2000:]
     saved = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     expected = comparable(reference)["methods"]["D-ICRL"]["learners"]
-    # the rows as evaluated; the run's end adds the identifiability fields to every row
+    # the rows as evaluated; the run's end adds the identifiability fields to every row,
+    # and the learners' traffic
     from dicrl_torch.runs.grid import ANNOTATIONS
+    from dicrl_torch.runs.runner import TRAFFIC_KEYS
 
     assert saved["D-ICRL:evaluated"]["rows"] == [
-        {k: v for k, v in row.items() if k not in ANNOTATIONS} for row in expected]
+        {k: v for k, v in row.items() if k not in (*ANNOTATIONS, *TRAFFIC_KEYS)}
+        for row in expected]
     resumed = run_train(tmp_path, "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "D-ICRL: rows evaluated after outer iteration 3 taken from" in resumed.stdout
@@ -454,8 +457,8 @@ class ContentRecorder(SimulatedCommunicator):
         super().__init__(n_learners, record=True)
         self.sent: list[tuple[str, torch.Tensor]] = []
 
-    def all_gather(self, values, field):
-        out = super().all_gather(values, field)
+    def all_gather(self, values, field, phase=None):
+        out = super().all_gather(values, field, phase)
         self.sent.extend((field, row.clone()) for row in values)
         return out
 

@@ -401,11 +401,25 @@ class DICRL:
         return groups
 
     # ------------------------------------------------------------------ outer iteration
+    def _cost_weights_of_all(self) -> torch.Tensor:
+        """Every learner's ω_c ``[N_L, d]``: gathered, or (``skip_redundant_rounds``) known
+        without a round where they must all be equal: the initial ω_c (public) when
+        equal, and the ω_c after a W̄(n) whose rows are all equal (every learner then
+        computes the same sum, bit for bit)."""
+        st, n = self.state, self.state.outer_iteration
+        if getattr(self.comm, "skip_redundant_rounds", False):
+            if n == 0:
+                if bool((self._cost_all == self._cost_all[0]).all()):
+                    return self._cost_all.clone()
+            elif bool((self.outer_schedule(n - 1) == self.outer_schedule(n - 1)[0]).all()):
+                return st.cost_weights[:1].expand(self.n_learners, -1).clone()
+        return self.comm.all_gather(st.cost_weights, "cost_weights")
+
     def outer_step(self) -> dict:
         """One iteration of Algorithm 1 for every local learner; returns diagnostics."""
         st, n = self.state, self.state.outer_iteration
         t0 = time.perf_counter()
-        cost_all = self.comm.all_gather(st.cost_weights, "cost_weights")  # [N_L, d]
+        cost_all = self._cost_weights_of_all()  # [N_L, d]
         groups = self._inner_groups(cost_all, st.groups)
         new_eta = torch.empty_like(st.eta)
         eta_bar_own = torch.empty_like(st.eta_bar)
@@ -438,7 +452,8 @@ class DICRL:
         target = torch.where(self.pinned, 0.0, target)
         half = st.cost_weights + self.steps.beta(n) * (target - st.cost_weights)
         self._check_finite("ω_c", half)
-        st.cost_weights = self.comm.mix(half, W_bar, "cost_weights")
+        # Without the residual, compressed ω_c stay equal wherever W̄'s rows are.
+        st.cost_weights = self.comm.mix(half, W_bar, "cost_weights", keep_residual=False)
         st.tracker, st.last_lga = tracker, lga
         st.outer_iteration = n + 1
         info = {
@@ -449,6 +464,8 @@ class DICRL:
             "lga_norm": lga.norm(dim=1).tolist(),
             # [L][d]: each local learner's ω_c after the step (figures.cost_weight_curves)
             "cost_weights": st.cost_weights.tolist(),
+            # [L]: the algorithm's bytes each local learner has sent so far
+            "bytes_sent": [self.comm.traffic.bytes_sent(v) for v in self.local],
         }
         self.history.append(info)
         return info
@@ -503,6 +520,8 @@ class DICRL:
         }
         if getattr(self.learner_model, "stateful", False):
             sd["learner_model"] = self.learner_model.state_dict()
+        if hasattr(self.comm, "state_dict"):
+            sd["communicator"] = self.comm.state_dict()
         return sd
 
     def load_state_dict(self, sd: dict) -> None:
@@ -521,6 +540,8 @@ class DICRL:
             tracker=sd["tracker"], last_lga=sd["last_lga"],
             outer_iteration=int(sd["outer_iteration"]), groups=sd["groups"])
         self.solves, self.history = int(sd["solves"]), list(sd["history"])
+        if "communicator" in sd and hasattr(self.comm, "load_state_dict"):
+            self.comm.load_state_dict(sd["communicator"])
 
     def fingerprint(self) -> str:
         """Shapes and settings a checkpoint must match."""
@@ -528,7 +549,8 @@ class DICRL:
         return (f"NL={self.n_learners} local={self.local} d={lm.cost_dim} lr={lm.reward_dim} "
                 f"K={self.K} steps={self.steps} rho={self.rho} prune={self.prune_accrued} "
                 f"inner={self.inner_method}:{self.inner_step} "
-                f"m={self.m.tolist()} {lm.describe()}")
+                f"m={self.m.tolist()} {lm.describe()}"
+                + (f" {comm}" if (comm := getattr(self.comm, "describe", lambda: "")()) else ""))
 
     # ------------------------------------------------------------------ outputs
     def policy(self, i: int) -> ModelSolution:
@@ -591,5 +613,5 @@ class DICRL:
         values = {"cost_weights": self.state.cost_weights, "eta": self.state.eta_bar}
         if field not in values:
             raise ValueError(f"field must be one of {sorted(values)}, got {field!r}.")
-        gathered = self.comm.all_gather(values[field], field)
+        gathered = self.comm.all_gather(values[field], field, phase="diagnostics")
         return float(torch.cdist(gathered, gathered).max())

@@ -6,15 +6,25 @@ local learner ``v``, ``Σ_{v'} W[v, v'] x_{v'}``, accumulated in a fixed order
 (``v' = 0, 1, ..``) so that every backend performs the same floating-point operations
 and produces identical numbers.
 
-Only the fields listed in :data:`ALLOWED_FIELDS` may be sent; every message is
-recorded (field, shape) so that a test can audit what left a learner.
+Only the fields listed in :data:`ALLOWED_FIELDS` may be sent; every exchange is counted
+(:class:`~dicrl_torch.comm.traffic.Traffic`), and with ``record`` every message is
+logged (field, shape, sender, recipients, phase, bytes, encoding) so that a test can
+audit what left a learner.
+
+:class:`Communicator` holds the mechanism both backends share (counting, compressed
+mixing with public copies); a backend supplies only the transport: ``_exchange_dense``
+(an all-gather of equal-shaped float64 rows) and ``_exchange_messages`` (one byte string
+from each local learner to every other learner).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
+
+from dicrl_torch.comm.compression import Compression
+from dicrl_torch.comm.traffic import Traffic, phase_of
 
 # What may leave a learner: η = [ω_r, λ], ω_c and the gradient trackers (Algorithm 1's,
 # and the optional gradient-tracking inner variant's).
@@ -22,6 +32,8 @@ ALLOWED_FIELDS = ("eta", "cost_weights", "tracker", "inner_tracker")
 # Control values a run coordinates its learner processes with (never learner data): the
 # run directory and id, and which outer iterations each learner has checkpointed.
 CONTROL_FIELDS = ("run_directory", "checkpointed_iterations")
+# Bytes of the length that precedes a compressed message on the wire.
+LENGTH_BYTES = 4
 
 
 def check_control(field: str, value) -> bytes:
@@ -37,55 +49,205 @@ def check_control(field: str, value) -> bytes:
 
 @dataclass
 class MessageRecord:
+    """One message of the audit log: what ``sender`` sent to ``recipients``.
+
+    ``encoding`` is "float64" (the values themselves), "json" (a control value) or
+    "compressed" (``payload`` holds the bytes as sent, which
+    :meth:`Compression.apply <dicrl_torch.comm.compression.Compression.apply>` decodes).
+    """
+
     field: str
     shape: tuple[int, ...]
     sender: int
+    recipients: tuple[int, ...] = ()
+    phase: str = ""
+    nbytes: int = 0
+    encoding: str = "float64"
+    payload: bytes = b""
 
 
-@dataclass
-class SimulatedCommunicator:
+class Communicator:
+    """What both backends share. Subclasses set ``n_learners`` and ``local_ids`` and
+    call :meth:`_setup`.
+
+    Options (the ``comm`` config group):
+        compression: :class:`~dicrl_torch.comm.compression.Compression` of the mixed
+            fields (η, ω_c, the trackers), or None: float64 all-gathers, as the paper.
+        skip_redundant_rounds: the trainer does not gather ω_c when every learner's is
+            known to be equal (the initial ω_c, or after a W̄(n) whose rows are equal).
+        diagnostics: the run gathers the consensus distances for TensorBoard and
+            results.json (reported apart from the algorithm's traffic).
+    """
+
+    n_learners: int
+
+    def _setup(self, *, record: bool, compression: Compression | None,
+               skip_redundant_rounds: bool, diagnostics: bool) -> None:
+        if compression is not None and not isinstance(compression, Compression):
+            raise TypeError(f"compression must be a Compression or None, got "
+                            f"{type(compression).__name__}.")
+        for name, flag in (("record", record), ("skip_redundant_rounds", skip_redundant_rounds),
+                           ("diagnostics", diagnostics)):
+            if not isinstance(flag, bool):
+                raise ValueError(f"{name} must be true or false, got {flag!r}.")
+        self.record, self.compression = record, compression
+        self.skip_redundant_rounds, self.diagnostics = skip_redundant_rounds, diagnostics
+        self.messages: list[MessageRecord] = []
+        self.traffic = Traffic(self.local_ids)
+        self._copies: dict[str, torch.Tensor] = {}  # field -> [N_L, s] public copies
+
+    @property
+    def local_ids(self) -> list[int]:
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        """The options that change the numbers (for a checkpoint's fingerprint); "" for
+        the paper's exchange."""
+        c = self.compression
+        return "" if c is None else f"compression=({c.threshold:g},{c.bits})"
+
+    # ------------------------------------------------------------------ transport
+    def _exchange_dense(self, values: torch.Tensor, what: str) -> torch.Tensor:
+        """``[n_local, s]`` float64 -> ``[N_L, s]``: every learner's row."""
+        raise NotImplementedError
+
+    def _exchange_messages(self, messages: list[bytes], what: str) -> list[bytes]:
+        """One message per local learner -> every learner's message, in learner order."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ exchanges
+    def _check(self, values: torch.Tensor, field: str) -> None:
+        if field not in ALLOWED_FIELDS:
+            raise ValueError(f"Field {field!r} may not leave a learner; allowed: "
+                             f"{ALLOWED_FIELDS}.")
+        n = len(self.local_ids)
+        if values.dim() < 1 or values.shape[0] != n:
+            raise ValueError(f"Expected values [{n}, ...] for the local learners "
+                             f"{self.local_ids}, got shape {tuple(values.shape)}.")
+        if not values.is_floating_point():
+            raise ValueError(f"Only real floating-point values are exchanged, got "
+                             f"{values.dtype} for {field!r}.")
+
+    def _count(self, field: str, phase: str, shape: tuple[int, ...], scalars: list[int],
+               nbytes: list[int], encoding: str, payloads: list[bytes] | None = None
+               ) -> None:
+        """Count (and record) that every learner ``u`` sent ``scalars[u]`` scalars in
+        ``nbytes[u]`` bytes to each other learner."""
+        others = self.n_learners - 1
+        for v in self.local_ids:
+            self.traffic.add(v, "sent", phase, messages=others, scalars=others * scalars[v],
+                             nbytes=others * nbytes[v])
+            self.traffic.add(v, "received", phase, messages=others,
+                             scalars=sum(scalars) - scalars[v], nbytes=sum(nbytes) - nbytes[v])
+            if self.record:
+                self.messages.append(MessageRecord(
+                    field, shape, v, tuple(u for u in range(self.n_learners) if u != v),
+                    phase, nbytes[v], encoding, b"" if payloads is None else payloads[v]))
+
+    def all_gather(self, values: torch.Tensor, field: str, phase: str | None = None
+                   ) -> torch.Tensor:
+        """``values`` ``[n_local, ...]`` of the local learners -> ``[N_L, ...]``, sent as
+        float64 (float16/32/64 round-trip exactly, so numbers are unchanged).
+
+        Args:
+            phase: what the exchange is counted under (default: the field's round;
+                "diagnostics" for the consensus distances).
+
+        Raises:
+            ValueError: the field may not leave a learner, or the shape is wrong.
+        """
+        self._check(values, field)
+        phase = phase_of(field, phase)
+        shape = tuple(values.shape[1:])
+        flat = values.detach().to(torch.float64).reshape(values.shape[0], -1)
+        gathered = self._exchange_dense(flat, f"{field!r}")
+        s = flat.shape[1]
+        self._count(field, phase, shape, [s] * self.n_learners, [8 * s] * self.n_learners,
+                    "float64")
+        return gathered.reshape(self.n_learners, *shape).to(values.dtype)
+
+    def mix(self, values: torch.Tensor, W: torch.Tensor, field: str, *,
+            keep_residual: bool = True) -> torch.Tensor:
+        """Consensus step ``[n_local, ...]`` -> ``[n_local, ...]`` with ``W`` ``[N_L, N_L]``.
+
+        With compression, every learner mixes the public copies ``x̂`` (equal
+        everywhere) and, with ``keep_residual``, adds back its own ``x - x̂``: the sum
+        over learners is then kept, as gradient tracking needs (CHOCO-gossip with step
+        1). Without it the outputs are equal wherever the rows of ``W`` are (ω_c under a
+        uniform W̄: one inner process serves every learner). Lossless compression gives
+        the uncompressed numbers bit for bit either way.
+        """
+        if tuple(W.shape) != (self.n_learners, self.n_learners):
+            raise ValueError(f"W must be [{self.n_learners}, {self.n_learners}], got "
+                             f"{tuple(W.shape)}.")
+        if self.compression is None:
+            return fixed_order_mix(self.all_gather(values, field), W, self.local_ids)
+        self._check(values, field)
+        x = values.detach().to(torch.float64).reshape(values.shape[0], -1)  # [n, s]
+        copies = self._copies.get(field)
+        if copies is None or copies.shape[1] != x.shape[1]:
+            copies = torch.zeros(self.n_learners, x.shape[1], dtype=torch.float64)
+        mine = [self.compression.encode(x[i], copies[v]) for i, v in enumerate(self.local_ids)]
+        messages = self._exchange_messages(mine, f"{field!r}")
+        decoded = [Compression.apply(m, copies[u]) for u, m in enumerate(messages)]
+        copies = torch.stack([c for c, _ in decoded])
+        self._copies[field] = copies
+        self._count(field, phase_of(field, None), tuple(values.shape[1:]),
+                    [n for _, n in decoded], [LENGTH_BYTES + len(m) for m in messages],
+                    "compressed", messages)
+        mixed = fixed_order_mix(copies, W, self.local_ids)
+        if keep_residual and not self.compression.lossless:
+            mixed = mixed + (x - copies[self.local_ids])
+        return mixed.reshape(values.shape).to(values.dtype)
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        """The counters and the public copies (a resumed compressed run continues bit
+        for bit)."""
+        return {"traffic": self.traffic.state_dict(),
+                "copies": {k: v.clone() for k, v in self._copies.items()}}
+
+    def load_state_dict(self, sd: dict) -> None:
+        self.traffic.load_state_dict(sd["traffic"])
+        self._copies = {k: v.clone() for k, v in sd["copies"].items()}
+
+
+class SimulatedCommunicator(Communicator):
     """All ``n_learners`` learners in one process (``local_ids = 0..N_L-1``).
 
     Args:
         n_learners: number of learners ``N_L``.
         record: keep a log of every message (for the privacy audit).
+        compression, skip_redundant_rounds, diagnostics: see :class:`Communicator`.
     """
 
-    n_learners: int
-    record: bool = False
-    messages: list[MessageRecord] = field(default_factory=list)
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.n_learners, int) or self.n_learners < 1:
-            raise ValueError(f"n_learners must be a positive int, got {self.n_learners!r}.")
+    def __init__(self, n_learners: int, record: bool = False, *,
+                 compression: Compression | None = None, skip_redundant_rounds: bool = False,
+                 diagnostics: bool = True) -> None:
+        if not isinstance(n_learners, int) or isinstance(n_learners, bool) or n_learners < 1:
+            raise ValueError(f"n_learners must be a positive int, got {n_learners!r}.")
+        self.n_learners = n_learners
+        self._setup(record=record, compression=compression,
+                    skip_redundant_rounds=skip_redundant_rounds, diagnostics=diagnostics)
 
     @property
     def local_ids(self) -> list[int]:
         return list(range(self.n_learners))
 
-    def all_gather(self, values: torch.Tensor, field: str) -> torch.Tensor:
-        """``values`` ``[n_local, ...]`` of the local learners -> ``[N_L, ...]``."""
-        if field not in ALLOWED_FIELDS:
-            raise ValueError(f"Field {field!r} may not leave a learner; allowed: "
-                             f"{ALLOWED_FIELDS}.")
-        if values.shape[0] != self.n_learners:
-            raise ValueError(f"Expected values for {self.n_learners} local learners, got "
-                             f"{values.shape[0]}.")
-        if self.record:
-            for v in self.local_ids:
-                self.messages.append(MessageRecord(field, tuple(values.shape[1:]), v))
+    def _exchange_dense(self, values: torch.Tensor, what: str) -> torch.Tensor:
         return values
 
-    def mix(self, values: torch.Tensor, W: torch.Tensor, field: str) -> torch.Tensor:
-        """Consensus step: ``[n_local, ...]`` -> ``[n_local, ...]`` with ``W`` ``[N_L, N_L]``."""
-        return fixed_order_mix(self.all_gather(values, field), W, self.local_ids)
+    def _exchange_messages(self, messages: list[bytes], what: str) -> list[bytes]:
+        return messages
 
     def gather_control(self, value, field: str) -> list:
         """Every learner's control ``value`` (JSON-able), in learner order: here all
-        learners share one process, hence one value. Recorded like every message."""
+        learners share one process, hence one value. Counted as the distributed backend
+        sends it (a length, then the JSON bytes)."""
         data = check_control(field, value)
-        if self.record:
-            self.messages.append(MessageRecord(field, (len(data),), self.local_ids[0]))
+        size = 8 + len(data)
+        self._count(field, "control", (len(data),), [0] * self.n_learners,
+                    [size] * self.n_learners, "json")
         return [value] * self.n_learners
 
     def close(self) -> None:

@@ -38,12 +38,8 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from dicrl_torch.checks import InvalidSetting, setting_choice, setting_number
-from dicrl_torch.comm.communicator import (
-    ALLOWED_FIELDS,
-    MessageRecord,
-    check_control,
-    fixed_order_mix,
-)
+from dicrl_torch.comm.communicator import Communicator, check_control
+from dicrl_torch.comm.compression import Compression
 
 _FIX = ("A learner process died or never joined; check its log, then rerun, resuming "
         "from the last checkpoint.")
@@ -77,7 +73,7 @@ class LearnerProcessError(RuntimeError):
                          + "\n".join(lines))
 
 
-class DistributedCommunicator:
+class DistributedCommunicator(Communicator):
     """One learner per process over ``torch.distributed``: ``local_ids == [rank]``.
 
     Args:
@@ -88,7 +84,10 @@ class DistributedCommunicator:
             MASTER_PORT, RANK, WORLD_SIZE). "tcp://HOST:PORT" needs ``rank`` and
             ``world_size``.
         rank, world_size: this learner's id and ``N_L`` (default: from the environment).
-        record: keep a :class:`MessageRecord` of every message this learner sends.
+        record: keep a :class:`~dicrl_torch.comm.communicator.MessageRecord` of every
+            message this learner sends.
+        compression, skip_redundant_rounds, diagnostics: see
+            :class:`~dicrl_torch.comm.communicator.Communicator`.
 
     If the default process group already exists it is reused as it is (its backend and
     timeout apply) and left open by :meth:`close`. Every rank must call the collectives
@@ -115,13 +114,14 @@ class DistributedCommunicator:
 
     def __init__(self, *, backend: str = "gloo", timeout_s: float = 60.0,
                  init_method: str | None = None, rank: int | None = None,
-                 world_size: int | None = None, record: bool = False) -> None:
+                 world_size: int | None = None, record: bool = False,
+                 compression: Compression | None = None, skip_redundant_rounds: bool = False,
+                 diagnostics: bool = True) -> None:
         if not dist.is_available():
             raise RuntimeError("torch.distributed is not available in this torch build; use "
                                "SimulatedCommunicator instead.")
         self.check_settings(backend=backend, timeout_s=timeout_s)
-        self.timeout_s, self.record = float(timeout_s), record
-        self.messages: list[MessageRecord] = []
+        self.timeout_s = float(timeout_s)
         self._owns_group = False
         if dist.is_initialized():
             backend = str(dist.get_backend())
@@ -170,6 +170,8 @@ class DistributedCommunicator:
             index = int(os.environ.get("LOCAL_RANK", self.rank % torch.cuda.device_count()))
             self.device = torch.device("cuda", index)
             torch.cuda.set_device(self.device)
+        self._setup(record=record, compression=compression,
+                    skip_redundant_rounds=skip_redundant_rounds, diagnostics=diagnostics)
 
     @property
     def local_ids(self) -> list[int]:
@@ -188,35 +190,38 @@ class DistributedCommunicator:
                 f"({type(e).__name__}: {_first_line(e)}). {_FIX}") from e
         return torch.cat(out).to(payload.device)
 
-    def all_gather(self, values: torch.Tensor, field: str) -> torch.Tensor:
-        """``values`` ``[1, ...]`` of this learner -> ``[N_L, ...]`` of all learners.
+    def _exchange_dense(self, values: torch.Tensor, what: str) -> torch.Tensor:
+        return self._gather(values, what)
 
-        Raises:
-            ValueError: the field may not leave a learner, or the shape is wrong.
-            PeerFailureError: another learner died or timed out.
-        """
-        if field not in ALLOWED_FIELDS:
-            raise ValueError(f"Field {field!r} may not leave a learner; allowed: "
-                             f"{ALLOWED_FIELDS}.")
-        if values.dim() < 1 or values.shape[0] != 1:
-            raise ValueError(f"Expected values [1, ...] for the one local learner "
-                             f"{self.rank}, got shape {tuple(values.shape)}.")
-        if not values.is_floating_point():
-            raise ValueError(f"Only real floating-point values are exchanged, got "
-                             f"{values.dtype} for {field!r}.")
-        if self.record:
-            self.messages.append(MessageRecord(field, tuple(values.shape[1:]), self.rank))
-        # float64 on the wire: float16/32/64 round-trip exactly, so numbers are unchanged.
-        gathered = self._gather(values.detach().to(torch.float64), f"{field!r}")
-        return gathered.to(values.dtype)
+    def _exchange_messages(self, messages: list[bytes], what: str) -> list[bytes]:
+        """This learner's message to every other learner, and theirs to it: point to
+        point, each a 4-byte length and then (when not empty) the bytes, so what crosses
+        the backend is what :class:`~dicrl_torch.comm.traffic.Traffic` counts."""
+        (mine,) = messages
+        others = [r for r in range(self.n_learners) if r != self.rank]
+        length = torch.tensor([len(mine)], dtype=torch.int32, device=self.device)
+        lengths = {r: torch.zeros(1, dtype=torch.int32, device=self.device) for r in others}
+        self._wait([dist.isend(length, r) for r in others]
+                   + [dist.irecv(lengths[r], r) for r in others], what)
+        payloads = {r: torch.empty(int(lengths[r]), dtype=torch.uint8, device=self.device)
+                    for r in others if int(lengths[r]) > 0}
+        works = [dist.irecv(t, r) for r, t in payloads.items()]
+        if mine:
+            send = torch.frombuffer(bytearray(mine), dtype=torch.uint8).to(self.device)
+            works += [dist.isend(send, r) for r in others]
+        self._wait(works, what)
+        return [mine if r == self.rank else
+                bytes(payloads[r].cpu().numpy().tobytes()) if r in payloads else b""
+                for r in range(self.n_learners)]
 
-    def mix(self, values: torch.Tensor, W: torch.Tensor, field: str) -> torch.Tensor:
-        """Consensus step ``[1, ...] -> [1, ...]``: row ``rank`` of ``W @ gathered``,
-        summed in the fixed order shared with the simulated backend."""
-        if tuple(W.shape) != (self.n_learners, self.n_learners):
-            raise ValueError(f"W must be [{self.n_learners}, {self.n_learners}], got "
-                             f"{tuple(W.shape)}.")
-        return fixed_order_mix(self.all_gather(values, field), W, self.local_ids)
+    def _wait(self, works: list, what: str) -> None:
+        try:
+            for work in works:
+                work.wait(datetime.timedelta(seconds=self.timeout_s))
+        except Exception as e:
+            raise PeerFailureError(
+                f"Learner {self.rank} of {self.n_learners}: exchanging {what} failed "
+                f"({type(e).__name__}: {_first_line(e)}). {_FIX}") from e
 
     def gather_control(self, value, field: str) -> list:
         """Every learner's control ``value`` (JSON-able: the run directory, checkpointed
@@ -230,12 +235,13 @@ class DistributedCommunicator:
         import json
 
         data = check_control(field, value)
-        if self.record:
-            self.messages.append(MessageRecord(field, (len(data),), self.rank))
         size = self._gather(torch.tensor([[len(data)]], dtype=torch.int64), f"{field!r}")
         padded = torch.zeros(1, int(size.max()), dtype=torch.uint8)
         padded[0, :len(data)] = torch.frombuffer(bytearray(data), dtype=torch.uint8)
         rows = self._gather(padded, f"{field!r}")
+        # what crossed: a length (int64) and the padded bytes, from and to every learner
+        self._count(field, "control", (len(data),), [0] * self.n_learners,
+                    [8 + padded.shape[1]] * self.n_learners, "json")
         return [json.loads(bytes(rows[r, :int(size[r, 0])].tolist()))
                 for r in range(self.n_learners)]
 

@@ -17,7 +17,7 @@ RunOf = Callable[[int], str]  # learner id -> TensorBoard run name
 # History keys logged after every outer iteration (CR and CVR only where rolled out).
 HISTORY_TAGS = (("outer/multiplier", "multiplier"), ("outer/lga_norm", "lga_norm"),
                 ("eval/FPR", "FPR"), ("eval/FNR", "FNR"), ("eval/RFD", "RFD"),
-                ("eval/CR", "CR"), ("eval/CVR", "CVR"))
+                ("eval/CR", "CR"), ("eval/CVR", "CVR"), ("comm/bytes_sent", "bytes_sent"))
 
 
 class OuterMetrics(TrainerCallback):
@@ -81,7 +81,7 @@ class TensorBoardValues(TrainerCallback):
 
     def on_outer_end(self, trainer: DICRL, info: dict[str, Any]) -> None:
         log_history_entry(self.logger, self.run_of, trainer.local, info)
-        if trainer.n_learners > 1:
+        if trainer.n_learners > 1 and getattr(trainer.comm, "diagnostics", True):
             log_disagreement(self.logger if self.log_network else None, trainer,
                              info["outer_iteration"])
 

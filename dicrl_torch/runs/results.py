@@ -55,11 +55,12 @@ TABLE2_COLUMNS = ("FPR", "FNR", "CVR", "SR")
 _FORMATS = {"FPR": (7, ".2f"), "FNR": (7, ".2f"), "CVR": (8, ".3f"), "RFD": (8, ".3f"),
             "SR": (7, ".2f"), "FNR_required": (8, ".2f"), "region_recall": (7, ".2f"),
             "region_precision": (7, ".2f"), "region_precision_determined": (8, ".2f"),
-            "region_iou": (7, ".2f")}
+            "region_iou": (7, ".2f"), "KB_sent": (9, ".1f")}
 # The region scores (dicrl_torch.region): recall, precision (undetermined states counted
 # as false / set apart) and IoU of the learned set as a classifier of states.
 _HEADERS = {"FNR_required": "FNR_req", "region_recall": "R_rec", "region_precision": "R_prec",
-            "region_precision_determined": "R_prec*", "region_iou": "R_IoU"}
+            "region_precision_determined": "R_prec*", "region_iou": "R_IoU",
+            "KB_sent": "KB_sent"}
 REGION_COLUMNS = ("region_recall", "region_precision", "region_precision_determined",
                   "region_iou")
 

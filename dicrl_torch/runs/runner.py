@@ -351,13 +351,20 @@ def finish(task: Task, settings: RunSettings, spec: TrainerSpec, *, out: Path,
     # After results.json: a figure that fails to draw loses no result.
     images = task.figures(methods=methods, histories=results["history"],
                           experiment=settings.experiment, eval_every=settings.eval_every)
+    d_history = results["history"].get("D-ICRL") or []
+    if d_history and all(h.get("bytes_sent") is not None for h in d_history):
+        from dicrl_torch.figures import metrics_against_bytes
+
+        images["traffic"] = metrics_against_bytes(
+            {"D-ICRL": d_history},
+            title=f"{settings.experiment}: each learner's metrics against the bytes it sent")
     paths = []
     for tag, img in images.items():
         paths.append(save_png(out / f"{tag}.png", img))
         logger.image("figures", tag, img, settings.outer_iterations)
     logger.close()
     print()
-    print_table(methods, task.columns)
+    print_table(methods, (*task.columns, "KB_sent"))
     if identifiability is not None:
         i = identifiability
         print(f"true constraints: {i['n_demonstrated']} demonstrated, {i['n_required']} "
@@ -394,12 +401,31 @@ def run_all_in_one(task: Task, settings: RunSettings, spec: TrainerSpec, *, out:
             run_of = lambda v: f"learner{v}"  # noqa: E731
             train_method("D-ICRL", trainer, task=task, settings=settings, ckpt=ckpt,
                          logger=logger, run_of=run_of, log_network=True, stop=stop)
-            gap = trainer.disagreement()  # of the trained ω_c: pruning below is local
-            rows = evaluate_method("D-ICRL", trainer, task=task, settings=settings,
-                                   ckpt=ckpt, logger=logger, run_of=run_of, out=out)
+            gap = final_disagreement(trainer)  # of the trained ω_c: pruning below is local
+            rows = with_traffic(trainer, evaluate_method(
+                "D-ICRL", trainer, task=task, settings=settings, ckpt=ckpt, logger=logger,
+                run_of=run_of, out=out))
             d_icrl = {"learners": rows, "history": trainer.history, "disagreement": gap}
         return finish(task, settings, spec, out=out, d_icrl=d_icrl, logger=logger, ckpt=ckpt,
                       t_start=t_start, c_icrl_comm=communicator(1), stop=stop)
+
+
+def final_disagreement(trainer: DICRL) -> float | None:
+    """The trained ω_c's consensus distance (a diagnostic round), None when the
+    communicator's diagnostics are off."""
+    return trainer.disagreement() if getattr(trainer.comm, "diagnostics", True) else None
+
+
+TRAFFIC_KEYS = ("traffic", "KB_sent")
+
+
+def with_traffic(trainer: DICRL, rows: list[dict]) -> list[dict]:
+    """``rows`` of the local learners with what each sent and received (``traffic``, by
+    phase) and ``KB_sent``, the algorithm's kilobytes sent (the table's column)."""
+    for v, row in zip(trainer.local, rows, strict=True):
+        row["traffic"] = trainer.comm.traffic.report(v)
+        row["KB_sent"] = row["traffic"]["algorithm_bytes_sent"] / 1000
+    return rows
 
 
 # ---------------------------------------------------------------------- one process per learner
@@ -467,9 +493,10 @@ def run_learner(comm, task: Task, settings: RunSettings, spec: TrainerSpec, *, o
     run_of = lambda v: f"learner{v}"  # noqa: E731
     train_method("D-ICRL", trainer, task=task, settings=settings, ckpt=ckpt, logger=logger,
                  run_of=run_of, log_network=rank == 0)
-    gap = trainer.disagreement()  # of the trained ω_c, as in the simulated run
-    rows = evaluate_method("D-ICRL", trainer, task=task, settings=settings, ckpt=ckpt,
-                           logger=logger, run_of=run_of, out=out, progress=rank == 0)
+    gap = final_disagreement(trainer)  # of the trained ω_c, as in the simulated run
+    rows = with_traffic(trainer, evaluate_method(
+        "D-ICRL", trainer, task=task, settings=settings, ckpt=ckpt, logger=logger,
+        run_of=run_of, out=out, progress=rank == 0))
     logger.close()
     write_json(out / "learner_rows" / f"rank{rank}.json", {
         "run_id": run_id, "rank": rank, "world_size": comm.n_learners, "row": rows[0],
