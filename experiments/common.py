@@ -379,9 +379,11 @@ def settings_problems(cfg, skip: Sequence[str] = ()) -> list[str]:
     attempt(lambda: run_settings(cfg), "the run's settings")
     attempt(lambda: trainer_spec(cfg), "the trainer's settings")
     attempt(lambda: c_icrl_beside_learners(cfg), "algo")
-    if not is_simulated(cfg):
-        attempt(lambda: get_class(cfg.comm._target_).check_settings(
-            **read(cfg, node_keys(cfg.comm))), "comm", node_keys(cfg.comm))
+    comm_keys = {**node_keys(cfg.comm), **{  # and those of a nested node (compression)
+        f"{k}.{kk}": f"comm.{k}.{kk}" for k, v in cfg.comm.items() if OmegaConf.is_dict(v)
+        for kk in v}}
+    attempt(lambda: get_class(cfg.comm._target_).check_settings(
+        **read(cfg, node_keys(cfg.comm))), "comm", comm_keys)
     if env_fit(cfg.env)[0] == "grid":
         from dicrl_torch.runs.grid import GridTask
 

@@ -232,33 +232,40 @@ def test_trainer_trajectories_are_identical(trainer_runs):
         assert r["inner_processes"] == [h["inner_processes"] for h in sim.history]
 
 
-# int8 messages of every mixed field and no redundant ω_c gather: the point-to-point
-# transport of compressed messages
-COMPRESSED = {"bits": 8, "skip_redundant_rounds": True}
+# int8 messages of every mixed field and no redundant ω_c gather (the point-to-point
+# transport of compressed messages); inner links that fail (realised alike everywhere)
+OPTIONS = {"int8": {"bits": 8, "skip_redundant_rounds": True},
+           "failing_links": {"link_failure": 0.3, "link_seed": 1}}
 
 
-@pytest.fixture(scope="module")
-def compressed_runs():
+@pytest.fixture(scope="module", params=sorted(OPTIONS))
+def option_runs(request):
     tiny = build_tiny()
+    options = OPTIONS[request.param]
     sim = make_trainer(tiny, tiny[3], SimulatedCommunicator(
-        len(SPLIT), record=True, **comm_options(COMPRESSED)))
+        len(SPLIT), record=True, **comm_options(options)))
     sim.train(3)
-    return sim, spawn_learners(_trainer_body, len(SPLIT), args=(3, COMPRESSED),
-                               timeout_s=180)
+    return sim, spawn_learners(_trainer_body, len(SPLIT), args=(3, options), timeout_s=180)
 
 
-@pytest.mark.parametrize("which", ["trainer_runs", "compressed_runs"])
-def test_traffic_counted_on_each_rank_equals_the_simulated_count(which, request):
+def check_traffic(sim, runs) -> None:
     """The bytes a rank counts are those its collectives and point-to-point sends moved,
     and equal the simulated run's count for that learner, phase by phase."""
-    sim, runs = request.getfixturevalue(which)
     for rank, r in enumerate(runs):
         assert json.loads(r["traffic"]) == sim.comm.traffic.report(rank)
         assert sim.comm.traffic.bytes_sent(rank) > 0
 
 
-def test_compressed_trajectories_are_identical(compressed_runs):
-    sim, runs = compressed_runs
+def test_traffic_counted_on_each_rank_equals_the_simulated_count(trainer_runs):
+    check_traffic(*trainer_runs)
+
+
+def test_traffic_with_each_option_equals_the_simulated_count(option_runs):
+    check_traffic(*option_runs)
+
+
+def test_trajectories_with_each_option_are_identical(option_runs):
+    sim, runs = option_runs
     for rank, r in enumerate(runs):
         for key in ("cost_weights", "eta_bar", "tracker"):
             assert torch.equal(r[key], getattr(sim.state, key)[rank]), (rank, key)

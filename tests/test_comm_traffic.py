@@ -14,7 +14,14 @@ import tiny_dicrl
 import torch
 
 from dicrl_torch.checks import InvalidSetting
-from dicrl_torch.comm import CompleteSchedule, RingSchedule, SimulatedCommunicator
+from dicrl_torch.comm import (
+    CompleteSchedule,
+    DirectedCycleSchedule,
+    LinkFailures,
+    RingSchedule,
+    SimulatedCommunicator,
+    TimeVaryingSchedule,
+)
 from dicrl_torch.comm.communicator import LENGTH_BYTES, fixed_order_mix
 from dicrl_torch.comm.compression import Compression
 from dicrl_torch.comm.traffic import PHASES, Traffic
@@ -263,3 +270,68 @@ def test_the_audit_of_compressed_messages_replays_to_the_receivers_copies(tiny):
             assert not (replayed[key].shape == x.shape and torch.allclose(replayed[key], x))
     for (field, sender), copy in replayed.items():
         assert torch.equal(copy, t.comm._copies[field][sender])
+
+
+# ---------------------------------------------------------------------- links that fail
+@pytest.mark.parametrize("schedule", [CompleteSchedule(n_learners=5), RingSchedule(n_learners=5),
+                                      TimeVaryingSchedule(n_learners=5, period=2),
+                                      DirectedCycleSchedule(n_learners=5)])
+def test_realised_graphs_are_doubly_stochastic_on_the_links_left(schedule):
+    failures = LinkFailures(0.3, seed=4)
+    downs = []
+    for k in range(40):
+        W = schedule(k)
+        R = failures.realise(W, 2, 0, k)
+        assert torch.equal(R, failures.realise(W, 2, 0, k))  # the same round: the same graph
+        assert torch.allclose(R.sum(0), torch.ones(5, dtype=torch.float64), atol=1e-12)
+        assert torch.allclose(R.sum(1), torch.ones(5, dtype=torch.float64), atol=1e-12)
+        assert (R >= 0).all() and (R.diagonal() > 0).all()
+        off = ~torch.eye(5, dtype=torch.bool)
+        assert not ((R > 0) & (W == 0) & off).any()  # no link appears
+        downs.append(((W > 0) & (R == 0) & off).sum().item() / ((W > 0) & off).sum().item())
+    if isinstance(schedule, (CompleteSchedule, RingSchedule)):
+        # symmetric: a failed link's weight goes to both ends, the others stay as they were
+        assert 0.15 < np.mean(downs) < 0.45
+        W, R = schedule(0), failures.realise(schedule(0), 2, 0, 0)
+        kept = (R > 0) & ~torch.eye(5, dtype=torch.bool)
+        assert torch.equal(R[kept], W[kept])
+    assert not torch.equal(failures.realise(schedule(0), 2, 0, 0),
+                           failures.realise(schedule(0), 2, 1, 0)) or \
+        not torch.equal(failures.realise(schedule(0), 2, 0, 0),
+                        failures.realise(schedule(0), 3, 0, 0))
+
+
+def test_a_directed_cycle_with_a_link_down_cannot_mix():
+    """A doubly stochastic matrix is a mix of permutations: with one link of a directed
+    cycle down no cycle is left through the others, so only the identity remains."""
+    W = DirectedCycleSchedule(n_learners=4)(0)
+    failures = LinkFailures(0.5, seed=0)
+    for k in range(20):
+        R = failures.realise(W, 0, 0, k)
+        if torch.equal(R > 0, W > 0):
+            assert torch.equal(R, W)
+        else:
+            assert torch.allclose(R, torch.eye(4, dtype=torch.float64), atol=1e-12)
+
+
+def test_training_over_failing_links(tiny):
+    exact = trained(tiny, iterations=4)
+    lossy = trained(tiny, iterations=4, link_failure=0.2, link_seed=1)
+    again = trained(tiny, iterations=4, link_failure=0.2, link_seed=1)
+    other = trained(tiny, iterations=4, link_failure=0.2, link_seed=2)
+    st = lossy.state
+    assert torch.equal(st.eta_bar, again.state.eta_bar)  # seeded: the same run
+    assert not torch.equal(st.eta_bar, other.state.eta_bar)
+    assert not torch.equal(st.eta_bar, exact.state.eta_bar)
+    assert torch.allclose(st.tracker.sum(0), st.last_lga.sum(0), rtol=0, atol=1e-12)
+    assert all("disconnected_inner_processes" in h for h in lossy.history)
+    assert "disconnected_inner_processes" not in exact.history[0]
+    assert np.array_equal((st.cost_weights >= 0.5).numpy(),
+                          (exact.state.cost_weights >= 0.5).numpy())
+
+
+def test_failing_links_are_refused_with_compressed_messages():
+    with pytest.raises(InvalidSetting, match="link_failure"):
+        SimulatedCommunicator(N, compression=Compression(), link_failure=0.2)
+    with pytest.raises(InvalidSetting, match="link_failure"):
+        SimulatedCommunicator(N, link_failure=1.0)

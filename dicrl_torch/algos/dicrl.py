@@ -44,7 +44,12 @@ from dicrl_torch.algos.callbacks import TrainerCallback
 from dicrl_torch.algos.icrl import dual_gradient, local_gradient
 from dicrl_torch.algos.models import LearnerModel, ModelSolution, TabularLearnerModel
 from dicrl_torch.checks import setting_bool, setting_choice, setting_int, setting_number
-from dicrl_torch.comm.graphs import MixingSchedule, check_inner_schedule, check_outer_schedule
+from dicrl_torch.comm.graphs import (
+    MixingSchedule,
+    check_inner_schedule,
+    check_outer_schedule,
+    strongly_connected,
+)
 from dicrl_torch.features.bases import FeatureBasis
 from dicrl_torch.metrics import learned_constraints
 from dicrl_torch.solvers.factored import FactoredSoftBellman
@@ -343,6 +348,18 @@ class DICRL:
         scaled[:, -1] *= self.steps.multiplier_scale
         return scaled
 
+    def _inner_matrix(self, k: int) -> torch.Tensor:
+        """W(k) of the running inner process; over failing links (``comm.link_failure``)
+        the round's realised graph, the same on every learner, its support added to the
+        process's union (Assumption 1 is checked on it)."""
+        W = self.inner_schedule(k)
+        failures = getattr(self.comm, "link_failures", None)
+        if failures is None:
+            return W
+        W = failures.realise(W, self.state.outer_iteration, self._process, k)
+        self._union = (W > 0) if k == 0 else self._union | (W > 0)
+        return W
+
     def inner_process(self, cost_weights: torch.Tensor, eta0: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor]:
         """The inner process for one ω_c ``[d]``: ``eta0`` ``[n, p]`` -> (η̄ ``[n, p]``,
@@ -360,7 +377,7 @@ class DICRL:
                 break
             grads = self._scaled_gradients(eta, cost_weights, k)
             self._check_finite("The dual gradient m ∇G", grads, k, self._process)
-            eta = self.comm.mix(eta, self.inner_schedule(k), "eta") - a * grads
+            eta = self.comm.mix(eta, self._inner_matrix(k), "eta") - a * grads
             self._check_finite("η = [ω_r, λ]", eta, k, self._process)
         return acc / alpha_sum, eta
 
@@ -370,7 +387,7 @@ class DICRL:
         self._check_finite("The dual gradient m ∇G", g, 0, self._process)
         s = g
         for k in range(self.K - 1):
-            W = self.inner_schedule(k)
+            W = self._inner_matrix(k)
             eta = self.comm.mix(eta, W, "eta") - self.inner_step * s
             self._check_finite("η = [ω_r, λ]", eta, k, self._process)
             if k == self.K - 2:
@@ -423,10 +440,13 @@ class DICRL:
         groups = self._inner_groups(cost_all, st.groups)
         new_eta = torch.empty_like(st.eta)
         eta_bar_own = torch.empty_like(st.eta_bar)
+        disconnected = 0
         for g in groups:
             self._log_rows = [i for i, v in enumerate(self.local) if v in g]
             self._process = g[0]
             bar, last = self.inner_process(cost_all[g[0]], st.eta[g[0]])
+            if getattr(self.comm, "link_failures", None) is not None:
+                disconnected += not strongly_connected(self._union.numpy())
             for u in g:
                 new_eta[u] = last
                 for i, v in enumerate(self.local):
@@ -467,6 +487,9 @@ class DICRL:
             # [L]: the algorithm's bytes each local learner has sent so far
             "bytes_sent": [self.comm.traffic.bytes_sent(v) for v in self.local],
         }
+        if getattr(self.comm, "link_failures", None) is not None:
+            # inner processes whose rounds together did not connect the learners
+            info["disconnected_inner_processes"] = disconnected
         self.history.append(info)
         return info
 

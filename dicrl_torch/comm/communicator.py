@@ -23,7 +23,9 @@ from dataclasses import dataclass
 
 import torch
 
+from dicrl_torch.checks import InvalidSetting, setting_bool
 from dicrl_torch.comm.compression import Compression
+from dicrl_torch.comm.graphs import LinkFailures
 from dicrl_torch.comm.traffic import Traffic, phase_of
 
 # What may leave a learner: η = [ω_r, λ], ω_c and the gradient trackers (Algorithm 1's,
@@ -77,19 +79,53 @@ class Communicator:
             known to be equal (the initial ω_c, or after a W̄(n) whose rows are equal).
         diagnostics: the run gathers the consensus distances for TensorBoard and
             results.json (reported apart from the algorithm's traffic).
+        link_failure: the probability that a link of the inner graph W(k) fails in a
+            round (:class:`~dicrl_torch.comm.graphs.LinkFailures`; the outer rounds stay
+            reliable, as Assumption 3 needs); 0: none.
+        link_seed: the seed of the failures (the run's seed).
     """
 
     n_learners: int
 
+    @staticmethod
+    def check_settings(**settings) -> None:
+        """Refuse the options given as the constructor would (``compression`` as a
+        :class:`Compression` or the mapping of its arguments); others are ignored. A config
+        checks them before any process starts.
+
+        Raises:
+            InvalidSetting: naming the option, what it must be and an example.
+        """
+        compression = settings.get("compression")
+        if isinstance(compression, dict):
+            try:
+                compression = Compression(**{k: v for k, v in compression.items()
+                                             if k != "_target_"})
+            except InvalidSetting as e:  # named as the comm node's key says
+                raise e.renamed({e.name: f"compression.{e.name}"}) from None
+        for name in ("record", "skip_redundant_rounds", "diagnostics"):
+            if name in settings:
+                setting_bool(name, settings[name], example=True)
+        failure = settings.get("link_failure", 0.0)
+        if failure or "link_seed" in settings:
+            LinkFailures(failure, settings.get("link_seed", 0))
+        if failure and compression is not None:
+            raise InvalidSetting("link_failure", failure, "0 while messages are compressed, "
+                                 "or set comm.compression=null: compressed messages update "
+                                 "copies that every receiver must hold, and a lost message "
+                                 "would leave a receiver's copy behind", 0.0)
+
     def _setup(self, *, record: bool, compression: Compression | None,
-               skip_redundant_rounds: bool, diagnostics: bool) -> None:
+               skip_redundant_rounds: bool, diagnostics: bool, link_failure: float = 0.0,
+               link_seed: int = 0) -> None:
         if compression is not None and not isinstance(compression, Compression):
             raise TypeError(f"compression must be a Compression or None, got "
                             f"{type(compression).__name__}.")
-        for name, flag in (("record", record), ("skip_redundant_rounds", skip_redundant_rounds),
-                           ("diagnostics", diagnostics)):
-            if not isinstance(flag, bool):
-                raise ValueError(f"{name} must be true or false, got {flag!r}.")
+        Communicator.check_settings(
+            compression=compression, record=record, diagnostics=diagnostics,
+            skip_redundant_rounds=skip_redundant_rounds, link_failure=link_failure,
+            link_seed=link_seed)
+        self.link_failures = LinkFailures(link_failure, link_seed) if link_failure else None
         self.record, self.compression = record, compression
         self.skip_redundant_rounds, self.diagnostics = skip_redundant_rounds, diagnostics
         self.messages: list[MessageRecord] = []
@@ -103,8 +139,9 @@ class Communicator:
     def describe(self) -> str:
         """The options that change the numbers (for a checkpoint's fingerprint); "" for
         the paper's exchange."""
-        c = self.compression
-        return "" if c is None else f"compression=({c.threshold:g},{c.bits})"
+        c, f = self.compression, self.link_failures
+        return " ".join(([] if c is None else [f"compression=({c.threshold:g},{c.bits})"])
+                        + ([] if f is None else [f"link_failure=({f.p:g},{f.seed})"]))
 
     # ------------------------------------------------------------------ transport
     def _exchange_dense(self, values: torch.Tensor, what: str) -> torch.Tensor:
@@ -218,17 +255,20 @@ class SimulatedCommunicator(Communicator):
     Args:
         n_learners: number of learners ``N_L``.
         record: keep a log of every message (for the privacy audit).
-        compression, skip_redundant_rounds, diagnostics: see :class:`Communicator`.
+        compression, skip_redundant_rounds, diagnostics, link_failure, link_seed: see
+            :class:`Communicator`.
     """
 
     def __init__(self, n_learners: int, record: bool = False, *,
                  compression: Compression | None = None, skip_redundant_rounds: bool = False,
-                 diagnostics: bool = True) -> None:
+                 diagnostics: bool = True, link_failure: float = 0.0,
+                 link_seed: int = 0) -> None:
         if not isinstance(n_learners, int) or isinstance(n_learners, bool) or n_learners < 1:
             raise ValueError(f"n_learners must be a positive int, got {n_learners!r}.")
         self.n_learners = n_learners
         self._setup(record=record, compression=compression,
-                    skip_redundant_rounds=skip_redundant_rounds, diagnostics=diagnostics)
+                    skip_redundant_rounds=skip_redundant_rounds, diagnostics=diagnostics,
+                    link_failure=link_failure, link_seed=link_seed)
 
     @property
     def local_ids(self) -> list[int]:

@@ -86,7 +86,7 @@ class DistributedCommunicator(Communicator):
         rank, world_size: this learner's id and ``N_L`` (default: from the environment).
         record: keep a :class:`~dicrl_torch.comm.communicator.MessageRecord` of every
             message this learner sends.
-        compression, skip_redundant_rounds, diagnostics: see
+        compression, skip_redundant_rounds, diagnostics, link_failure, link_seed: see
             :class:`~dicrl_torch.comm.communicator.Communicator`.
 
     If the default process group already exists it is reused as it is (its backend and
@@ -96,8 +96,9 @@ class DistributedCommunicator(Communicator):
 
     @staticmethod
     def check_settings(**settings: Any) -> None:
-        """Refuse the settings given (``backend``, ``timeout_s``; others are ignored) as
-        the constructor does: a config checks them before any process starts.
+        """Refuse the settings given (``backend``, ``timeout_s`` and
+        :meth:`Communicator.check_settings`'s; others are ignored) as the constructor
+        does: a config checks them before any process starts.
 
         Raises:
             InvalidSetting: naming the setting, what it must be and an example.
@@ -111,12 +112,14 @@ class DistributedCommunicator(Communicator):
         if "timeout_s" in settings:
             setting_number("timeout_s", settings["timeout_s"], low=0, low_open=True,
                            example=60, why="seconds a learner waits for the others")
+        Communicator.check_settings(**settings)
 
     def __init__(self, *, backend: str = "gloo", timeout_s: float = 60.0,
                  init_method: str | None = None, rank: int | None = None,
                  world_size: int | None = None, record: bool = False,
                  compression: Compression | None = None, skip_redundant_rounds: bool = False,
-                 diagnostics: bool = True) -> None:
+                 diagnostics: bool = True, link_failure: float = 0.0,
+                 link_seed: int = 0) -> None:
         if not dist.is_available():
             raise RuntimeError("torch.distributed is not available in this torch build; use "
                                "SimulatedCommunicator instead.")
@@ -171,7 +174,8 @@ class DistributedCommunicator(Communicator):
             self.device = torch.device("cuda", index)
             torch.cuda.set_device(self.device)
         self._setup(record=record, compression=compression,
-                    skip_redundant_rounds=skip_redundant_rounds, diagnostics=diagnostics)
+                    skip_redundant_rounds=skip_redundant_rounds, diagnostics=diagnostics,
+                    link_failure=link_failure, link_seed=link_seed)
 
     @property
     def local_ids(self) -> list[int]:

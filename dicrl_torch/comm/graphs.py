@@ -26,9 +26,9 @@ import numpy as np
 import torch
 
 __all__ = [
-    "CompleteSchedule", "DirectedCycleSchedule", "GraphAssumptionError", "MatrixSchedule",
-    "MixingSchedule", "RingSchedule", "TimeVaryingSchedule", "check_inner_schedule",
-    "check_outer_schedule",
+    "CompleteSchedule", "DirectedCycleSchedule", "GraphAssumptionError", "LinkFailures",
+    "MatrixSchedule", "MixingSchedule", "RingSchedule", "TimeVaryingSchedule",
+    "check_inner_schedule", "check_outer_schedule", "strongly_connected",
 ]
 
 _MAX_LISTED = 8  # entries quoted in an error message before "…"
@@ -479,3 +479,79 @@ def check_outer_schedule(
     eps, _ = _check_steps(schedule, horizon, epsilon, atol, outer=True)
     return eps
 
+
+
+# ---------------------------------------------------------------------------
+# links that fail
+# ---------------------------------------------------------------------------
+
+
+def strongly_connected(support: np.ndarray) -> bool:
+    """Whether the graph of ``support`` ``[N, N]`` (``support[v, v']``: v hears v') is
+    strongly connected."""
+    support = np.asarray(support, dtype=bool)
+    return bool(_reachable(support.T).all() and _reachable(support).all())
+
+
+class LinkFailures:
+    """Inner rounds over links that fail: each link of ``W(k)`` is down with probability
+    ``p`` in each round, independently, drawn from ``(seed, round)`` so that every learner
+    computes the same realised graph without exchanging anything.
+
+    A link is a channel between two learners: when it fails neither hears the other. The
+    failed weights move to the diagonals (each learner keeps its own value instead), and a
+    directed ``W`` is then balanced back to doubly stochastic by Sinkhorn scaling on the
+    support that remains (the diagonal is positive, so the scaling exists). The realised
+    matrix is checked against Assumption 2 before use; Assumption 1 cannot be promised
+    for random failures and is checked, per inner process, on the union of its rounds
+    (:meth:`DICRL.inner_process <dicrl_torch.algos.dicrl.DICRL.inner_process>` reports the
+    processes whose union was not strongly connected).
+
+    Args:
+        p: the probability that a link fails in a round, in [0, 1).
+        seed: the run's seed.
+    """
+
+    def __init__(self, p: float, seed: int) -> None:
+        from dicrl_torch.checks import setting_number
+
+        self.p = setting_number("link_failure", p, low=0, high=1, high_open=True,
+                                example=0.2, why="the probability that a link fails in a "
+                                                  "round")
+        self.seed = _check_int("link_seed", seed, 0)
+
+    def realise(self, W: torch.Tensor, *round_id: int) -> torch.Tensor:
+        """``W`` ``[N, N]`` with this round's failed links removed and re-weighted.
+
+        Args:
+            round_id: non-negative ints naming the round (e.g. outer iteration, inner
+                process, inner step); the same ids give the same failures everywhere.
+        """
+        if self.p == 0.0:
+            return W
+        w = W.detach().to(torch.float64).numpy().copy()
+        n = w.shape[0]
+        draws = np.random.default_rng([self.seed, *round_id]).random(n * (n - 1) // 2)
+        pairs = [(u, v) for u in range(n) for v in range(u + 1, n)]
+        for (u, v), draw in zip(pairs, draws, strict=True):
+            if draw < self.p and (w[u, v] > 0 or w[v, u] > 0):
+                w[u, u] += w[u, v]
+                w[v, v] += w[v, u]
+                w[u, v] = w[v, u] = 0.0
+        if np.abs(w.sum(0) - 1.0).max() > 1e-15:  # a directed W: balance the columns
+            # A doubly stochastic matrix is a mix of permutations, so its links lie on
+            # cycles: a link between two strongly connected components of what is left
+            # (a directed cycle with one link down) cannot carry weight. Drop those, then
+            # scale on the rest (every link on a cycle, the diagonal positive: it converges).
+            reach = np.stack([_reachable(w.T > 0, v) for v in range(n)])  # [v, u]: v -> u
+            across = (w > 0) & ~(reach & reach.T)
+            w[np.diag_indices(n)] += np.where(across, w, 0.0).sum(1)
+            w[across] = 0.0
+            for _ in range(10_000):
+                w /= w.sum(0, keepdims=True)
+                w /= w.sum(1, keepdims=True)
+                if np.abs(w.sum(0) - 1.0).max() <= 1e-14:
+                    break
+        realised = torch.from_numpy(w)
+        _check_steps(MatrixSchedule([w]), 1, None, 1e-12, outer=False)  # Assumption 2
+        return realised
