@@ -194,9 +194,13 @@ def test_traffic_survives_a_checkpoint_by_adding():
 # ---------------------------------------------------------------------- the trainer
 def test_lossless_options_give_todays_run_bit_for_bit_with_fewer_bytes(tiny):
     today = trained(tiny)
-    lean = trained(tiny, compression=Compression(), skip_redundant_rounds=True)
+    lean = trained(tiny, compression=Compression(), skip_redundant_rounds=True, record=True)
     for key in ("cost_weights", "eta", "eta_bar", "tracker"):
         assert torch.equal(getattr(today.state, key), getattr(lean.state, key)), key
+    # distinct initial ω_c: the half steps at n = 0, the LSCA targets once ω_c are equal
+    by_iteration = [m.field for m in lean.comm.messages if m.sender == 0
+                    and m.field in ("cost_weights", "lsca_target")]
+    assert by_iteration == ["cost_weights", "cost_weights"] + ["lsca_target"] * 3
     for v in range(N):
         assert lean.comm.traffic.bytes_sent(v) < today.comm.traffic.bytes_sent(v)
 

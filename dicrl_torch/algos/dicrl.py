@@ -44,6 +44,7 @@ from dicrl_torch.algos.callbacks import TrainerCallback
 from dicrl_torch.algos.icrl import dual_gradient, local_gradient
 from dicrl_torch.algos.models import LearnerModel, ModelSolution, TabularLearnerModel
 from dicrl_torch.checks import setting_bool, setting_choice, setting_int, setting_number
+from dicrl_torch.comm.communicator import fixed_order_mix
 from dicrl_torch.comm.graphs import (
     MixingSchedule,
     check_inner_schedule,
@@ -418,19 +419,43 @@ class DICRL:
         return groups
 
     # ------------------------------------------------------------------ outer iteration
+    def _cost_weights_equal(self) -> bool:
+        """Whether every learner's ω_c is known, from public values alone, to be equal bit
+        for bit: the initial ω_c when equal, and the ω_c after a W̄(n) whose rows are all
+        equal (every learner then computes the same sum)."""
+        n = self.state.outer_iteration
+        if n == 0:
+            return bool((self._cost_all == self._cost_all[0]).all())
+        return bool((self.outer_schedule(n - 1) == self.outer_schedule(n - 1)[0]).all())
+
     def _cost_weights_of_all(self) -> torch.Tensor:
         """Every learner's ω_c ``[N_L, d]``: gathered, or (``skip_redundant_rounds``) known
-        without a round where they must all be equal: the initial ω_c (public) when
-        equal, and the ω_c after a W̄(n) whose rows are all equal (every learner then
-        computes the same sum, bit for bit)."""
-        st, n = self.state, self.state.outer_iteration
-        if getattr(self.comm, "skip_redundant_rounds", False):
-            if n == 0:
-                if bool((self._cost_all == self._cost_all[0]).all()):
-                    return self._cost_all.clone()
-            elif bool((self.outer_schedule(n - 1) == self.outer_schedule(n - 1)[0]).all()):
-                return st.cost_weights[:1].expand(self.n_learners, -1).clone()
+        without a round where they are equal."""
+        st = self.state
+        if getattr(self.comm, "skip_redundant_rounds", False) and self._cost_weights_equal():
+            return st.cost_weights[:1].expand(self.n_learners, -1).clone()
         return self.comm.all_gather(st.cost_weights, "cost_weights")
+
+    def _mix_cost_weights(self, target: torch.Tensor, W_bar: torch.Tensor) -> torch.Tensor:
+        """ω_c(n + 1) ``[n_local, d]`` = Σ_v' W̄[v, v'] (ω_c + β(n) (ω̃^[v'] − ω_c)).
+
+        With compressed messages and every ω_c known equal, the learners send their LSCA
+        targets ω̃ and each receiver completes the half step: a target stuck at a bound
+        is the same from one iteration to the next, so a delta message skips it, where the
+        half step moves every entry whose ω_c still moves. The half steps are computed
+        with the same operations as the sender's, so lossless messages give the paper's
+        numbers bit for bit. Mixed without the residual, compressed ω_c stay equal
+        wherever W̄'s rows are."""
+        st, beta = self.state, self.steps.beta(self.state.outer_iteration)
+        if getattr(self.comm, "compression", None) is not None and self._cost_weights_equal():
+            targets = self.comm.exchange(target, "lsca_target")  # [N_L, d]
+            cw = st.cost_weights[0]
+            half = cw + beta * (targets - cw)
+            self._check_finite("ω_c", half[self.local])
+            return fixed_order_mix(half, W_bar, self.local)
+        half = st.cost_weights + beta * (target - st.cost_weights)
+        self._check_finite("ω_c", half)
+        return self.comm.mix(half, W_bar, "cost_weights", keep_residual=False)
 
     def outer_step(self) -> dict:
         """One iteration of Algorithm 1 for every local learner; returns diagnostics."""
@@ -470,10 +495,7 @@ class DICRL:
         if self.prune_accrued:
             target = torch.where(self.accrued, 0.0, target)
         target = torch.where(self.pinned, 0.0, target)
-        half = st.cost_weights + self.steps.beta(n) * (target - st.cost_weights)
-        self._check_finite("ω_c", half)
-        # Without the residual, compressed ω_c stay equal wherever W̄'s rows are.
-        st.cost_weights = self.comm.mix(half, W_bar, "cost_weights", keep_residual=False)
+        st.cost_weights = self._mix_cost_weights(target, W_bar)
         st.tracker, st.last_lga = tracker, lga
         st.outer_iteration = n + 1
         info = {

@@ -29,8 +29,10 @@ from dicrl_torch.comm.graphs import LinkFailures
 from dicrl_torch.comm.traffic import Traffic, phase_of
 
 # What may leave a learner: η = [ω_r, λ], ω_c and the gradient trackers (Algorithm 1's,
-# and the optional gradient-tracking inner variant's).
-ALLOWED_FIELDS = ("eta", "cost_weights", "tracker", "inner_tracker")
+# and the optional gradient-tracking inner variant's), and, where every learner's ω_c is
+# known to be equal, the LSCA target ω̃ in place of ω_c's half step: every receiver knows
+# ω_c and β(n), so ω̃ = ω_c + (half - ω_c) / β reveals what the half step does.
+ALLOWED_FIELDS = ("eta", "cost_weights", "tracker", "inner_tracker", "lsca_target")
 # Control values a run coordinates its learner processes with (never learner data): the
 # run directory and id, and which outer iterations each learner has checkpointed.
 CONTROL_FIELDS = ("run_directory", "checkpointed_iterations")
@@ -219,6 +221,20 @@ class Communicator:
                              f"{tuple(W.shape)}.")
         if self.compression is None:
             return fixed_order_mix(self.all_gather(values, field), W, self.local_ids)
+        copies = self.exchange(values, field).reshape(self.n_learners, -1)
+        mixed = fixed_order_mix(copies, W, self.local_ids)
+        if keep_residual and not self.compression.lossless:
+            x = values.detach().to(torch.float64).reshape(values.shape[0], -1)
+            mixed = mixed + (x - copies[self.local_ids])
+        return mixed.reshape(values.shape).to(values.dtype)
+
+    def exchange(self, values: torch.Tensor, field: str) -> torch.Tensor:
+        """Every learner's public copy of ``field`` ``[N_L, ...]`` (float64) after this
+        round, in which the local learners send ``values`` ``[n_local, ...]``: compressed
+        against the copies (equal to ``values`` where the compression is lossless), or
+        whole (:meth:`all_gather`) without compression."""
+        if self.compression is None:
+            return self.all_gather(values, field).to(torch.float64)
         self._check(values, field)
         x = values.detach().to(torch.float64).reshape(values.shape[0], -1)  # [n, s]
         copies = self._copies.get(field)
@@ -232,10 +248,7 @@ class Communicator:
         self._count(field, phase_of(field, None), tuple(values.shape[1:]),
                     [n for _, n in decoded], [LENGTH_BYTES + len(m) for m in messages],
                     "compressed", messages)
-        mixed = fixed_order_mix(copies, W, self.local_ids)
-        if keep_residual and not self.compression.lossless:
-            mixed = mixed + (x - copies[self.local_ids])
-        return mixed.reshape(values.shape).to(values.dtype)
+        return copies.reshape(self.n_learners, *values.shape[1:])
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
