@@ -72,8 +72,18 @@ def test_quantised_messages_err_by_at_most_half_a_step(bits):
     level = 2 ** (bits - 1) - 1
     step = (x - copy).abs().max().item() / level
     assert (new - x).abs().max().item() <= 0.5 * step * (1 + 1e-6)
-    assert len(msg) <= 1 + 38 + 4 + 300 * bits // 8  # header, mask, scale, values
+    assert len(msg) <= 1 + 38 + 2 + 300 * bits // 8  # header, mask, scale, values
     assert 0 < n <= 300
+
+
+@pytest.mark.parametrize("x", [1e-30, 3.0e-8, 0.1, 1.0, 1.00390625, 7.77e5, 3.3e38])
+def test_the_scale_is_the_smallest_bfloat16_not_below_the_largest_difference(x):
+    from dicrl_torch.comm.compression import _bfloat16_at_least, _from_bfloat16
+
+    scale = _from_bfloat16(_bfloat16_at_least(x))
+    assert scale >= x and scale <= x * (1 + 2 ** -7)  # 8 significant bits
+    bits = np.array([scale], dtype=np.float32).view(np.uint32)[0]
+    assert bits & 0xFFFF == 0
 
 
 def test_entries_within_the_threshold_are_not_sent():

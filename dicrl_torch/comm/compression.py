@@ -11,8 +11,8 @@ bounded by one quantum instead of letting it accumulate.
   than δ from the copy; δ = 0 sends every entry that changed at all.
 - ``bits``: 64 sends the new values as float64 (lossless: δ = 0 gives today's numbers
   bit for bit), 32 as float32; 16 or 8 send the difference ``x - x̂`` uniformly
-  quantised against the message's largest difference (a float32 scale), entries that
-  round to 0 left for later.
+  quantised against the message's largest difference (its scale a bfloat16 rounded up:
+  2 bytes), entries that round to 0 left for later.
 
 An encoded message is ``b"" `` (nothing to send) or: one header byte (index scheme,
 value format), the index of the entries sent (none when all are, else the cheaper of
@@ -76,14 +76,10 @@ class Compression:
             if not selected.any():
                 return b""
             level = 2 ** (self.bits - 1) - 1
-            biggest = float(np.abs(diff[selected]).max())
-            scale32 = np.float32(biggest)
-            if float(scale32) < biggest:  # round the scale up: every |q| <= level
-                scale32 = np.nextafter(scale32, np.float32(np.inf))
-            q = np.clip(np.rint(diff / float(scale32) * level), -level, level)
+            scale = _bfloat16_at_least(float(np.abs(diff[selected]).max()))
+            q = np.clip(np.rint(diff / _from_bfloat16(scale) * level), -level, level)
             selected &= q != 0
             values = q[selected].astype(_VALUE_TYPES[self.bits])
-            scale = scale32.astype("<f4").tobytes()
         n_sent = int(selected.sum())
         if n_sent == 0:
             return b""
@@ -120,10 +116,28 @@ class Compression:
             out[selected] = np.frombuffer(message, _VALUE_TYPES[bits], n_sent, at)
         else:
             level = 2 ** (bits - 1) - 1
-            step = float(np.frombuffer(message, "<f4", 1, at)[0]) / level
-            q = np.frombuffer(message, _VALUE_TYPES[bits], n_sent, at + 4)
+            step = _from_bfloat16(message[at:at + 2]) / level
+            q = np.frombuffer(message, _VALUE_TYPES[bits], n_sent, at + 2)
             out[selected] += q.astype(np.float64) * step
         return torch.from_numpy(out), n_sent
+
+
+def _bfloat16_at_least(x: float) -> bytes:
+    """The smallest bfloat16 (float32's sign, exponent and top 7 mantissa bits) >= ``x``
+    > 0, as 2 little-endian bytes: a quantisation scale only has to bound the entries."""
+    bits = int(np.float32(x).view(np.uint32))
+    if float(np.float32(x)) < x:
+        bits += 1  # float32 rounded down: one ulp up
+    if bits & 0xFFFF:
+        bits = (bits | 0xFFFF) + 1
+    if bits >> 16 >= 0x7F80:
+        raise ValueError(f"A difference of {x:g} is beyond the quantisation scale's range.")
+    return (bits >> 16).to_bytes(2, "little")
+
+
+def _from_bfloat16(data: bytes) -> float:
+    return float(np.array([int.from_bytes(data, "little") << 16], dtype=np.uint32)
+                 .view(np.float32)[0])
 
 
 def _numpy(x: torch.Tensor) -> np.ndarray:
@@ -146,7 +160,7 @@ def _index(selected: np.ndarray, n_sent: int) -> tuple[int, bytes]:
 def _count(n_bytes: int, index_size: int, bits: int, s: int) -> int:
     """Entries of an index-list message of ``n_bytes`` after its header."""
     value_size = _VALUE_TYPES[bits].itemsize
-    scale = 4 if bits < 32 else 0
+    scale = 2 if bits < 32 else 0
     n, rest = divmod(n_bytes - scale, index_size + value_size)
     if rest or not 0 < n <= s:
         raise ValueError(f"A compressed message of {n_bytes + 1} bytes does not fit a "
