@@ -5,7 +5,7 @@
 
 Reads every ``results.json`` below the given directory (one per run) and prints, for
 each method row of the table (``D-ICRL 1`` … ``Experts (nominal)``), the mean ± std
-across runs of CR (the per-run mean), SR, FPR, FNR, FNR_required, CVR and RFD (null where a
+across runs of CR (the per-run mean), SR, FPR, FNR, FNR_required, CVR, RFD and KB_sent (null where a
 run lacks a value, e.g. SR on the grid or older runs without FNR_required; a column null in
 every row is not printed); writes the same numbers to ``summary.json`` in that directory.
 Runs of different experiments are refused.
@@ -19,7 +19,7 @@ import math
 import sys
 from pathlib import Path
 
-METRICS = ("CR_mean", "SR", "FPR", "FNR", "FNR_required", "CVR", "RFD")
+METRICS = ("CR_mean", "SR", "FPR", "FNR", "FNR_required", "CVR", "RFD", "KB_sent")
 
 
 def load_runs(root: Path) -> list[dict]:

@@ -18,8 +18,7 @@ from tiny_train import TRAIN, train_cli
 from dicrl_torch.algos.dicrl import DICRL, StepSizes
 from dicrl_torch.algos.greedy import SACGreedyConstraintInference
 from dicrl_torch.algos.models import LearnerModel, SACLearnerModel
-from dicrl_torch.comm import CompleteSchedule, SimulatedCommunicator
-from dicrl_torch.comm.distributed import ALLOWED_FIELDS
+from dicrl_torch.comm import ALLOWED_FIELDS, CompleteSchedule, SimulatedCommunicator
 from dicrl_torch.demos import partition_demonstrations
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations
 from dicrl_torch.envs.drones import JointDroneEnv, in_obstacle, start_support
@@ -45,17 +44,14 @@ def demos():
 
 
 class Recorder(SimulatedCommunicator):
+    """The audit log's fields: every message the learners sent."""
+
     def __init__(self, n):
-        super().__init__(n)
-        self.fields = set()
+        super().__init__(n, record=True)
 
-    def mix(self, x, W, field):
-        self.fields.add(field)
-        return super().mix(x, W, field)
-
-    def all_gather(self, x, field):
-        self.fields.add(field)
-        return super().all_gather(x, field)
+    @property
+    def fields(self) -> set[str]:
+        return {m.field for m in self.messages}
 
 
 def trainer(demos, seed: int, communicator=None) -> DICRL:

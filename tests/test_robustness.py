@@ -472,7 +472,8 @@ def test_messages_hold_only_documented_fields_and_no_local_statistics(tiny, inne
     t.train(2)
     t.disagreement()
     d, p = t.learner_model.cost_dim, t.learner_model.reward_dim + 1
-    sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,), "inner_tracker": (p,)}
+    sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,), "inner_tracker": (p,),
+             "lsca_target": (d,)}
     assert set(sizes) == set(ALLOWED_FIELDS)
     fields = {f for f, _ in comm.sent}
     expected = {"eta", "cost_weights", "tracker"} | (

@@ -109,7 +109,7 @@ class Communicator:
             if name in settings:
                 setting_bool(name, settings[name], example=True)
         failure = settings.get("link_failure", 0.0)
-        if failure or "link_seed" in settings:
+        if failure:  # the seed matters only to failures (the run's seed is checked apart)
             LinkFailures(failure, settings.get("link_seed", 0))
         if failure and compression is not None:
             raise InvalidSetting("link_failure", failure, "0 while messages are compressed, "

@@ -198,15 +198,14 @@ class DistributedCommunicator(Communicator):
         return self._gather(values, what)
 
     def _exchange_messages(self, messages: list[bytes], what: str) -> list[bytes]:
-        """This learner's message to every other learner, and theirs to it: point to
-        point, each a 4-byte length and then (when not empty) the bytes, so what crosses
-        the backend is what :class:`~dicrl_torch.comm.traffic.Traffic` counts."""
+        """This learner's message to every other learner, and theirs to it: the 4-byte
+        lengths by an all-gather (a collective, so a learner that died is noticed at
+        once, as in every other exchange), then the bytes of each message not empty
+        point to point; what crosses the backend is what
+        :class:`~dicrl_torch.comm.traffic.Traffic` counts."""
         (mine,) = messages
         others = [r for r in range(self.n_learners) if r != self.rank]
-        length = torch.tensor([len(mine)], dtype=torch.int32, device=self.device)
-        lengths = {r: torch.zeros(1, dtype=torch.int32, device=self.device) for r in others}
-        self._wait([dist.isend(length, r) for r in others]
-                   + [dist.irecv(lengths[r], r) for r in others], what)
+        lengths = self._gather(torch.tensor([[len(mine)]], dtype=torch.int32), what)[:, 0]
         payloads = {r: torch.empty(int(lengths[r]), dtype=torch.uint8, device=self.device)
                     for r in others if int(lengths[r]) > 0}
         works = [dist.irecv(t, r) for r, t in payloads.items()]
