@@ -268,7 +268,8 @@ class DistributedCommunicator(Communicator):
 
         Exchanges only the sha256 digest of ``fingerprint`` (a control message, not
         learner data, hence not in :attr:`messages`); ``fingerprint`` must therefore
-        describe the shared configuration, never a learner's demonstrations.
+        describe the shared configuration, never a learner's demonstrations. Counted in
+        the control traffic.
 
         Raises:
             ConfigMismatchError: on every rank, naming the ranks of each digest.
@@ -276,6 +277,10 @@ class DistributedCommunicator(Communicator):
         digest = hashlib.sha256(fingerprint.encode()).digest()
         mine = torch.tensor(list(digest), dtype=torch.int64).unsqueeze(0)  # [1, 32]
         gathered = self._gather(mine, "the configuration fingerprint")
+        others, size = self.n_learners - 1, mine.numel() * 8
+        for direction in ("sent", "received"):
+            self.traffic.add(self.rank, direction, "control", messages=others, scalars=0,
+                             nbytes=others * size)
         groups: dict[bytes, list[int]] = {}
         for r in range(self.n_learners):
             groups.setdefault(bytes(gathered[r].tolist()), []).append(r)
