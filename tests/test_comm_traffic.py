@@ -349,3 +349,20 @@ def test_failing_links_are_refused_with_compressed_messages():
         SimulatedCommunicator(N, compression=Compression(), link_failure=0.2)
     with pytest.raises(InvalidSetting, match="link_failure"):
         SimulatedCommunicator(N, link_failure=1.0)
+
+
+def test_inner_fields_take_their_own_bits():
+    c = Compression(bits=8, inner_bits=16)
+    assert c.for_field("eta").bits == 16 and c.for_field("inner_tracker").bits == 16
+    assert c.for_field("tracker") is c and c.for_field("lsca_target") is c
+    assert not c.lossless and Compression(inner_bits=64).lossless
+    with pytest.raises(InvalidSetting, match="inner_bits"):
+        Compression(inner_bits=4)
+    # the multiplier's step is 100 times the reward weights': in 8 bits their quantum is
+    # as large as they are, in 16 bits a 500th of them
+    copy = torch.zeros(3, dtype=torch.float64)
+    x = torch.tensor([0.013, -0.021, -3.0], dtype=torch.float64)
+    for bits, worst in ((8, 0.5), (16, 0.005)):
+        got, _ = Compression.apply(Compression(bits=bits).encode(x, copy), copy)
+        relative = ((got - x).abs() / x.abs())[:2].max().item()
+        assert (relative > worst / 10) if bits == 8 else (relative < worst), (bits, relative)

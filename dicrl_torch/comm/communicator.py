@@ -142,7 +142,8 @@ class Communicator:
         """The options that change the numbers (for a checkpoint's fingerprint); "" for
         the paper's exchange."""
         c, f = self.compression, self.link_failures
-        return " ".join(([] if c is None else [f"compression=({c.threshold:g},{c.bits})"])
+        inner = "" if c is None or c.inner_bits is None else f",{c.inner_bits}"
+        return " ".join(([] if c is None else [f"compression=({c.threshold:g},{c.bits}{inner})"])
                         + ([] if f is None else [f"link_failure=({f.p:g},{f.seed})"]))
 
     # ------------------------------------------------------------------ transport
@@ -223,7 +224,7 @@ class Communicator:
             return fixed_order_mix(self.all_gather(values, field), W, self.local_ids)
         copies = self.exchange(values, field).reshape(self.n_learners, -1)
         mixed = fixed_order_mix(copies, W, self.local_ids)
-        if keep_residual and not self.compression.lossless:
+        if keep_residual and not self.compression.for_field(field).lossless:
             x = values.detach().to(torch.float64).reshape(values.shape[0], -1)
             mixed = mixed + (x - copies[self.local_ids])
         return mixed.reshape(values.shape).to(values.dtype)
@@ -240,7 +241,8 @@ class Communicator:
         copies = self._copies.get(field)
         if copies is None or copies.shape[1] != x.shape[1]:
             copies = torch.zeros(self.n_learners, x.shape[1], dtype=torch.float64)
-        mine = [self.compression.encode(x[i], copies[v]) for i, v in enumerate(self.local_ids)]
+        codec = self.compression.for_field(field)
+        mine = [codec.encode(x[i], copies[v]) for i, v in enumerate(self.local_ids)]
         messages = self._exchange_messages(mine, f"{field!r}")
         decoded = [Compression.apply(m, copies[u]) for u, m in enumerate(messages)]
         copies = torch.stack([c for c, _ in decoded])

@@ -30,6 +30,7 @@ import torch
 from dicrl_torch.checks import InvalidSetting, is_int, setting_number
 
 _ALL, _MASK, _IDX16, _IDX32 = 0, 1, 2, 3
+INNER_FIELDS = ("eta", "inner_tracker")
 _VALUE_TYPES = {64: np.dtype("<f8"), 32: np.dtype("<f4"), 16: np.dtype("<i2"),
                 8: np.dtype("i1")}
 _BITS = tuple(_VALUE_TYPES)
@@ -45,24 +46,40 @@ class Compression:
             unchanged).
         bits: 64 or 32 (the values, as float64 or float32) or 16 or 8 (the quantised
             difference).
+        inner_bits: the bits of the inner rounds' fields (η, the inner tracker); None:
+            ``bits``. η holds the multiplier beside the reward weights, whose steps can be
+            a hundredth of its own: quantised against the largest, they would wait for
+            several rounds, so they get more bits (they are few: l_r + 1 per message).
     """
 
     threshold: float = 0.0
     bits: int = 64
+    inner_bits: int | None = None
 
     def __post_init__(self) -> None:
         setting_number("threshold", self.threshold, low=0, example=1e-4,
                        why="entries that moved less than this from the receivers' copy "
                            "are not sent")
-        if not is_int(self.bits) or self.bits not in _BITS:
-            raise InvalidSetting("bits", self.bits, "one of 64, 32, 16, 8 (64/32: values as "
-                                 "float64/float32; 16/8: quantised differences)", 8)
+        for name in ("bits", "inner_bits"):
+            value = getattr(self, name)
+            if name == "inner_bits" and value is None:
+                continue
+            if not is_int(value) or value not in _BITS:
+                raise InvalidSetting(name, value, "one of 64, 32, 16, 8 (64/32: values as "
+                                     "float64/float32; 16/8: quantised differences)", 8)
         object.__setattr__(self, "threshold", float(self.threshold))
+
+    def for_field(self, field: str) -> Compression:
+        """How ``field``'s messages are encoded: ``inner_bits`` for η and the inner
+        tracker."""
+        if self.inner_bits is None or field not in INNER_FIELDS:
+            return self
+        return Compression(threshold=self.threshold, bits=self.inner_bits)
 
     @property
     def lossless(self) -> bool:
         """The copy equals the value after every message (δ = 0, float64 values)."""
-        return self.threshold == 0.0 and self.bits == 64
+        return self.threshold == 0.0 and self.bits == 64 and self.inner_bits in (None, 64)
 
     def encode(self, x: torch.Tensor, copy: torch.Tensor) -> bytes:
         """The message that brings ``copy`` ``[s]`` towards ``x`` ``[s]`` (float64)."""
