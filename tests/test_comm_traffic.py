@@ -366,3 +366,20 @@ def test_inner_fields_take_their_own_bits():
         got, _ = Compression.apply(Compression(bits=bits).encode(x, copy), copy)
         relative = ((got - x).abs() / x.abs())[:2].max().item()
         assert (relative > worst / 10) if bits == 8 else (relative < worst), (bits, relative)
+
+
+def test_checkpoints_move_between_exchanges_that_give_the_same_numbers(tiny):
+    """The paper's exchange and lossless messages give the same numbers, so a checkpoint
+    of one continues under the other (a committed checkpoint from before the options
+    too), bit for bit; a lossy setting is refused."""
+    whole = trained(tiny, iterations=4)
+    first = trained(tiny, iterations=2, compression=Compression(), skip_redundant_rounds=True)
+    resumed = tiny_dicrl.make_trainer(tiny, communicator=SimulatedCommunicator(N))
+    resumed.load_state_dict(first.state_dict())
+    resumed.train(4)
+    assert torch.equal(whole.state.cost_weights, resumed.state.cost_weights)
+    assert torch.equal(whole.state.eta_bar, resumed.state.eta_bar)
+    lossy = tiny_dicrl.make_trainer(tiny, communicator=SimulatedCommunicator(
+        N, compression=Compression(bits=8)))
+    with pytest.raises(ValueError, match="differently configured"):
+        lossy.load_state_dict(first.state_dict())

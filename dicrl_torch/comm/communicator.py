@@ -140,8 +140,10 @@ class Communicator:
 
     def describe(self) -> str:
         """The options that change the numbers (for a checkpoint's fingerprint); "" for
-        the paper's exchange."""
+        the paper's numbers (lossless compression too: a checkpoint of either, or from
+        before the options, continues under the other)."""
         c, f = self.compression, self.link_failures
+        c = None if c is not None and c.lossless else c
         inner = "" if c is None or c.inner_bits is None else f",{c.inner_bits}"
         return " ".join(([] if c is None else [f"compression=({c.threshold:g},{c.bits}{inner})"])
                         + ([] if f is None else [f"link_failure=({f.p:g},{f.seed})"]))
