@@ -269,8 +269,14 @@ def test_the_audit_of_compressed_messages_replays_to_the_receivers_copies(tiny):
     holds, none of which is a learner's private statistic."""
     from dicrl_torch.comm import ALLOWED_FIELDS
 
-    t = trained(tiny, iterations=3, compression=Compression(bits=8), record=True,
-                skip_redundant_rounds=True)
+    comm = SimulatedCommunicator(N, compression=Compression(bits=8), record=True,
+                                 skip_redundant_rounds=True)
+    t = tiny_dicrl.make_trainer(tiny, communicator=comm)
+    # the copies start at the public initial η and ω_c (0 for the trackers)
+    start = {k: v.clone() for k, v in comm._copies.items()}
+    assert set(start) == {"eta", "cost_weights", "lsca_target"}
+    assert torch.equal(start["eta"][:, -1], torch.full((N,), -1.0, dtype=torch.float64))
+    t.train(3)
     private = [x for st in t.stats for x in (st.mu_r_hat, st.cost_accrual)]
     replayed: dict[tuple[str, int], torch.Tensor] = {}
     for m in t.comm.messages:
@@ -278,7 +284,9 @@ def test_the_audit_of_compressed_messages_replays_to_the_receivers_copies(tiny):
         if m.encoding != "compressed":
             continue
         key = (m.field, m.sender)
-        copy = replayed.get(key, torch.zeros(int(np.prod(m.shape)), dtype=torch.float64))
+        initial = start[m.field][m.sender] if m.field in start else torch.zeros(
+            int(np.prod(m.shape)), dtype=torch.float64)
+        copy = replayed.get(key, initial)
         replayed[key], _ = Compression.apply(m.payload, copy)
         for x in private:
             assert not (replayed[key].shape == x.shape and torch.allclose(replayed[key], x))

@@ -283,6 +283,11 @@ class DICRL:
         self._cost_all = cw  # ω_c of every learner, as last gathered
         self.history: list[dict] = []
         self.solves = 0
+        seed_copies = getattr(communicator, "seed_copies", None)
+        if callable(seed_copies):  # the initial values are public
+            seed_copies("eta", eta0.expand(N_L, lr + 1))
+            for field_name in ("cost_weights", "lsca_target"):
+                seed_copies(field_name, cw)
 
     # ------------------------------------------------------------------ numerical guard
     def _check_finite(self, what: str, values: torch.Tensor, inner_step: int | None = None,

@@ -254,6 +254,16 @@ class Communicator:
                     "compressed", messages)
         return copies.reshape(self.n_learners, *values.shape[1:])
 
+    def seed_copies(self, field: str, values: torch.Tensor) -> None:
+        """Start ``field``'s public copies ``[N_L, ...]`` at values every learner knows
+        (the initial η and ω_c) instead of 0: an entry that stays where it started is
+        then never sent, and stays exact under lossy compression (an ω_c left at 0.5,
+        the threshold, is not jittered across it). Copies restored from a checkpoint are
+        kept."""
+        if field not in self._copies:
+            self._copies[field] = values.detach().to(torch.float64).reshape(
+                self.n_learners, -1).clone()
+
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
         """The counters and the public copies (a resumed compressed run continues bit
