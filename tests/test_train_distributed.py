@@ -204,7 +204,11 @@ def test_sigterm_stops_a_torchrun_run_and_resume_finishes_it(tmp_path, simulated
     assert stopped.returncode != 0
     assert time.monotonic() - t0 < 60
     assert "error: learner 1: interrupted by SIGTERM" in stopped.stderr
-    assert "error: learner 0: PeerFailureError" in stopped.stderr
+    # Learner 0 notices the dead peer in its next exchange, or, when it is computing
+    # between exchanges as learner 1 exits, torchrun stops it first: a race either way
+    # settled within seconds (the bound above), never a wait for the timeout.
+    assert ("error: learner 0: PeerFailureError" in stopped.stderr
+            or "error: learner 0: interrupted by SIGTERM" in stopped.stderr), stopped.stderr[-3000:]
     assert f"resume=true hydra.run.dir={tmp_path}" in stopped.stderr
     assert not (tmp_path / "results.json").exists()
     resumed = run_train(tmp_path, "comm=distributed", "resume=true", launcher=torchrun(2))
