@@ -436,19 +436,9 @@ def metric_curves(histories: Mapping[str, Sequence[Mapping]], *,
         if key in ("FPR", "FNR"):
             ax.set_ylim(-0.03, 1.03)  # rates: the full range, so that panels compare
         ax.grid(alpha=0.3)
-    handles = {}
-    for ax in axes:  # one legend for all panels: each label once
-        for h, label in zip(*ax.get_legend_handles_labels(), strict=True):
-            handles.setdefault(label, h)
-    if final_rows:
-        handles["table value (after pruning)"] = Line2D([], [], ls="", marker="D", ms=8,
-                                                        mfc="none", mec="0.2", mew=1.5)
-    fig.legend(handles.values(), handles.keys(), loc="outside lower center",
-               ncol=min(len(handles), 6), fontsize=10, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=12)
-    canvas.draw()
-    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+    extra = {"table value (after pruning)": Line2D([], [], ls="", marker="D", ms=8, mfc="none",
+                                                   mec="0.2", mew=1.5)} if final_rows else {}
+    return _legend_and_render(fig, canvas, axes, title, extra=extra, ncol=6, fontsize=10)
 
 
 BYTES_METRICS = (("FPR", "FPR"), ("FNR", "FNR"), ("CR", "CR"), ("CVR", "CVR"))
@@ -496,12 +486,20 @@ def metrics_against_bytes(histories: Mapping[str, Sequence[Mapping]], *,
             if key in ("FPR", "FNR"):
                 ax.set_ylim(-0.03, 1.03)
             ax.grid(alpha=0.3)
+    return _legend_and_render(fig, canvas, axes, title, ncol=4, fontsize=9)
+
+
+def _legend_and_render(fig, canvas, axes, title: str, *, extra: Mapping | None = None,
+                       ncol: int, fontsize: int) -> np.ndarray:
+    """One legend below all panels (each label once, then ``extra`` handles), the title,
+    and the drawn figure as RGB ``[H, W, 3]`` uint8."""
     handles = {}
     for ax in axes:
-        for h, name in zip(*ax.get_legend_handles_labels(), strict=True):
-            handles.setdefault(name, h)
+        for h, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(label, h)
+    handles.update(extra or {})
     fig.legend(handles.values(), handles.keys(), loc="outside lower center",
-               ncol=min(len(handles), 4), fontsize=9, frameon=False)
+               ncol=min(len(handles), ncol), fontsize=fontsize, frameon=False)
     if title:
         fig.suptitle(title, fontsize=12)
     canvas.draw()
