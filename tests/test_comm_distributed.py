@@ -313,6 +313,7 @@ def test_a_learner_that_dies_fails_fast():
     assert elapsed < COMM_TIMEOUT_S, f"took {elapsed:.1f} s"
 
 
+@pytest.mark.slow  # ~25 s of timeouts waited out
 def test_the_last_barrier_can_wait_longer_than_an_exchange():
     """A learner late by more than the exchanges' timeout (its evaluation took longer):
     the plain barrier gives up, naming the failure; one given a longer bound waits."""

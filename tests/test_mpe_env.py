@@ -372,7 +372,8 @@ def test_nominal_controller_violates_both_constraint_kinds(layout):
 
 @pytest.mark.parametrize("layout,noise,least", [(SpreadLayout(), 0.0, 1.0), (THREE, 0.0, 1.0),
                                                 (SpreadLayout(), 0.05, 0.95),
-                                                (THREE, 0.05, 0.9)],
+                                                pytest.param(THREE, 0.05, 0.9,
+                                                             marks=pytest.mark.slow)],
                          ids=["two", "three", "two-noisy", "three-noisy"])
 def test_via_point_controller_succeeds_without_violation(layout, noise, least):
     # Measured on seeds 0-299 (agents numbered by the matching): success 1.000 without

@@ -41,9 +41,18 @@ def run(game: str, run_dir: Path, *extra: str, env: dict | None = None
     return train_cli(run_dir, *GAMES[game], "algo.outer_iterations=2", *extra, env=env)
 
 
-@pytest.fixture(scope="module", params=sorted(GAMES))
+@pytest.fixture(scope="module")
 def game(request) -> str:
     return request.param
+
+
+def games(default: str):
+    """Both games, indirectly through the module's ``game`` fixture; only ``default`` in
+    the default suite, the other marked slow: each property is checked there on one game,
+    and both SAC games share the code under test."""
+    return pytest.mark.parametrize(
+        "game", [g if g == default else pytest.param(g, marks=pytest.mark.slow)
+                 for g in sorted(GAMES)], indirect=True)
 
 
 @pytest.fixture(scope="module")
@@ -59,6 +68,7 @@ def assert_same(run_dir: Path, reference: Path) -> None:
     assert not diffs, f"{len(diffs)} differences:\n" + "\n".join(diffs[:30])
 
 
+@games(default="mpe")
 def test_a_killed_run_resumes_to_the_uninterrupted_results(tmp_path, game, uninterrupted):
     crashed = run(game, tmp_path, env={"DICRL_CRASH_AFTER": "D-ICRL:1"})  # SIGKILL after it. 1
     assert crashed.returncode == -9, crashed.stderr[-3000:]
@@ -76,6 +86,7 @@ def test_a_killed_run_resumes_to_the_uninterrupted_results(tmp_path, game, unint
 
 @pytest.mark.skipif(not (dist.is_available() and dist.is_gloo_available()),
                     reason="torch.distributed with gloo is not available")
+@games(default="drones")  # C-ICRL beside the learner processes: table2's setting
 def test_one_process_per_learner_gives_the_simulated_results(tmp_path, game, uninterrupted):
     out = run(game, tmp_path, "comm=distributed")
     assert out.returncode == 0, out.stderr[-3000:]
@@ -88,6 +99,7 @@ def test_one_process_per_learner_gives_the_simulated_results(tmp_path, game, uni
     assert_same(tmp_path, uninterrupted)
 
 
+@games(default="mpe")
 def test_a_warm_up_file_of_another_config_is_trained_again(tmp_path, game, uninterrupted):
     """A run directory reused under other settings: the old warm-up file is ignored and
     replaced, and the run is the uninterrupted one of its own config."""
@@ -101,6 +113,8 @@ def test_a_warm_up_file_of_another_config_is_trained_again(tmp_path, game, unint
 
 @pytest.mark.skipif(not (dist.is_available() and dist.is_gloo_available()),
                     reason="torch.distributed with gloo is not available")
+@pytest.mark.slow  # ~50 s; a dead learner is checked by tests/test_train_distributed.py
+@pytest.mark.parametrize("game", ["drones"], indirect=True)
 def test_a_dead_learner_stops_c_icrl_beside_it_and_resume_finishes_the_run(
         tmp_path, game, uninterrupted):
     """The drones' C-ICRL trains in the starting process beside the learner processes:
@@ -109,8 +123,6 @@ def test_a_dead_learner_stops_c_icrl_beside_it_and_resume_finishes_the_run(
     results.json."""
     import time
 
-    if game != "drones":
-        pytest.skip("C-ICRL beside the learners is table2's setting (the drones)")
     crashed = run("drones", tmp_path, "comm=distributed",
                   env={"DICRL_CRASH_AFTER": "D-ICRL@rank1:1"})
     elapsed = time.time() - (tmp_path / "checkpoint_rank1.pt").stat().st_mtime

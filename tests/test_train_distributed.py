@@ -194,6 +194,7 @@ def test_a_dead_learner_fails_a_torchrun_run(tmp_path):
         assert (tmp_path / f"checkpoint_rank{r}.pt").exists()
 
 
+@pytest.mark.slow  # ~35 s; SIGTERM of a one-process run: tests/test_robustness.py
 def test_sigterm_stops_a_torchrun_run_and_resume_finishes_it(tmp_path, simulated):
     """A learner that receives SIGTERM stops at once with a message and the resume
     command; the others fail fast; resuming under torchrun gives the uninterrupted run."""
@@ -243,6 +244,7 @@ def test_torchrun_learners_on_their_own_shard_files(tmp_path, simulated):
     assert not diffs, "\n".join(diffs[:30])
 
 
+@pytest.mark.slow  # ~35 s; one launcher with a file per learner is checked above
 def test_two_torchrun_nodes_each_holding_only_its_own_file(tmp_path, simulated):
     """Multi-node torchrun, emulated by two launchers on this machine (static rendezvous,
     fixed --node_rank, node 1 started first), each in a directory that holds only its
