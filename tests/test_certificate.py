@@ -43,6 +43,50 @@ def test_the_certificate_is_invariant_to_the_reward_scale():
     assert torch.allclose(results[0].probability[both], results[1].probability[both])
 
 
+def tied_routes():
+    """3x3, one expert from (0,1) to (2,1) round the obstacle (1,1), T = 4, deterministic::
+
+        . a .     two tied routes of 2 moves: NE (1,0) SE, or SE (1,2) NE; then stay
+        S # G     shard A took the first only, shard B the second
+        . b .
+
+    Shard A alone leaves (1,2) unseen, and with everything else it never saw forbidden,
+    the optimal expert with (1,2) open takes it half the time (the two first moves tie):
+    a 10-trajectory shard misses a 1/2 route with probability 2^-10, and across many
+    learners and seeds one does. Shard B's demonstrations show the route."""
+    layout = GridLayout(size=3, starts=((0, 1),), goals=((2, 1),), obstacles=((1, 1),))
+    model, solver, reward = problem(layout, horizon=4)
+    shard_a = demos_of(model, one_expert("NE SE stay stay"))
+    shard_b = demos_of(model, one_expert("SE NE stay stay"))
+    return model, solver, reward, shard_a, shard_b
+
+
+def test_a_route_another_shard_shows_is_not_certified():
+    """Own shard only: (1,2) certified with probability exactly 1/2 (hand-derived above).
+    With the features another learner's shard accrues (``also_demonstrated``, the bitmask
+    the learners exchange): not a candidate, and the rest of the set is unchanged."""
+    from dicrl_torch.algos.identifiability import demonstrated_mask
+
+    model, solver, reward, shard_a, shard_b = tied_routes()
+    basis = SharedIndicatorCostBasis(model)
+    j = basis.names.index("cell(1,2)")
+    own = certify_constraints(solver=solver, reward=reward, cost_basis=basis,
+                              demonstrations=shard_a)
+    assert float(own.probability[j]) == pytest.approx(0.5, abs=1e-12)
+    assert "cell(1,2)" in names(own, own.required)
+    others = demonstrated_mask(cost_basis=basis, model=model, demonstrations=shard_b)
+    assert bool(others[j]) and not bool(others[basis.names.index("cell(1,0)")])
+    network = certify_constraints(solver=solver, reward=reward, cost_basis=basis,
+                                  demonstrations=shard_a, also_demonstrated=others)
+    assert "cell(1,2)" not in names(network, network.required)
+    assert bool(network.demonstrated[j]) and torch.isnan(network.probability[j])
+    assert names(network, network.required) == names(own, own.required) - {"cell(1,2)"}
+    # the pooled shards are the same question asked of all the demonstrations at once
+    pooled = certify_constraints(solver=solver, reward=reward, cost_basis=basis,
+                                 demonstrations=[shard_a, shard_b])
+    assert torch.equal(pooled.required, network.required)
+
+
 def last_move_layout():
     """3x3, one expert from (0,0) to (2,0), no obstacle, T = 3, deterministic moves::
 

@@ -473,12 +473,13 @@ def test_messages_hold_only_documented_fields_and_no_local_statistics(tiny, inne
                                 init_cost=0.3)
     t.train(2)
     t.disagreement()
+    t.network_or(torch.stack([st.cost_accrual > 0 for st in t.stats]))  # the certificate's
     d, p = t.learner_model.cost_dim, t.learner_model.reward_dim + 1
     sizes = {"eta": (p,), "cost_weights": (d,), "tracker": (d,), "inner_tracker": (p,),
-             "lsca_target": (d,)}
+             "lsca_target": (d,), "demonstrated": (-(-d // 52),)}  # 52 mask bits a word
     assert set(sizes) == set(ALLOWED_FIELDS)
     fields = {f for f, _ in comm.sent}
-    expected = {"eta", "cost_weights", "tracker"} | (
+    expected = {"eta", "cost_weights", "tracker", "demonstrated"} | (
         {"inner_tracker"} if inner_method == "gradient_tracking" else set())
     assert fields == expected
     assert len(comm.sent) == len(comm.messages)

@@ -56,6 +56,8 @@ from dicrl_torch.metrics import learned_constraints
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 
 Schedule = MixingSchedule
+# Bits of a feature mask packed into one float64 word: every integer below 2**53 is exact.
+_MASK_BITS = 52
 
 
 class NonFiniteError(FloatingPointError):
@@ -75,12 +77,20 @@ class StepSizes:
     diagonal preconditioner, i.e. the same gradient method on ``λ / sqrt(scale)``. It
     matters when ``μ_r`` and ``J_ωc`` live on very different scales (the drones: μ_r is
     tens per feature, J a few units), where one α either overshoots ω_r or starves λ.
+
+    ``scale_by_learners`` multiplies every inner step by ``N_L`` (``α N_L m^[v] ∇G^[v]``).
+    Mixing with a doubly stochastic W moves the learners' average by the *mean* of their
+    steps, ``α/N_L Σ_v m^[v] ∇G^[v]``: with the paper's printed step the network moves
+    ``N_L`` times less far per inner step than C-ICRL at the same ᾱ on the pooled data
+    (``α Σ_v m^[v] ∇G^[v]``). Scaled, the average takes C-ICRL's step, as the outer step's
+    ``N_L y`` already does for ω_c; a constant factor keeps the step-size conditions.
     """
 
     alpha_bar: float = 0.05
     beta_bar: float = 0.5
     beta_power: float = 0.6
     multiplier_scale: float = 1.0
+    scale_by_learners: bool = False
 
     def __post_init__(self) -> None:
         setting_number("alpha_bar", self.alpha_bar, low=0, low_open=True, example=0.02,
@@ -88,10 +98,19 @@ class StepSizes:
         setting_number("multiplier_scale", self.multiplier_scale, low=0, low_open=True,
                        example=1.0, why="the λ coordinate's step is scaled by it; 1: the "
                                         "paper's")
+        setting_bool("scale_by_learners", self.scale_by_learners)
         setting_number("beta_bar", self.beta_bar, low=0, high=1, low_open=True,
                        high_open=True, example=0.5, why="so that β(n) ∈ (0, 1), Theorem 1")
         setting_number("beta_power", self.beta_power, low=0.5, high=1, low_open=True,
                        example=0.6, why="so that Σβ = ∞ and Σβ² < ∞, Theorem 1")
+
+    def __repr__(self) -> str:
+        # The paper's step leaves scale_by_learners out: checkpoints written before it
+        # existed keep their fingerprint.
+        extra = ", scale_by_learners=True" if self.scale_by_learners else ""
+        return (f"StepSizes(alpha_bar={self.alpha_bar!r}, beta_bar={self.beta_bar!r}, "
+                f"beta_power={self.beta_power!r}, multiplier_scale={self.multiplier_scale!r}"
+                f"{extra})")
 
     def alpha(self, k: int) -> float:
         return self.alpha_bar / (k + 1)
@@ -350,7 +369,8 @@ class DICRL:
             cb.on_inner_gradients(self, learners=self._log_rows,
                                   step=self.state.outer_iteration * self.K + k,
                                   gradients=grads, eta=eta)
-        scaled = self.m[:, None] * grads
+        m = self.m * self.n_learners if self.steps.scale_by_learners else self.m
+        scaled = m[:, None] * grads
         scaled[:, -1] *= self.steps.multiplier_scale
         return scaled
 
@@ -649,6 +669,29 @@ class DICRL:
                 kept = trial
                 pruned.append(j)
         return kept, pruned
+
+    def network_or(self, masks: torch.Tensor) -> torch.Tensor:
+        """``[d]`` bool: the OR over every learner of a per-learner mask (a collective:
+        every learner process must call it, with the same d). ``masks`` ``[n_local, d]``
+        bool of the local learners, e.g. the cost features each one's shard accrues.
+
+        Sent as field ``"demonstrated"``, counted in the outer round: 52 bits to a float64
+        word (integers below 2**53 are exact), so a 91-feature mask is 16 bytes.
+        """
+        masks = torch.as_tensor(masks, dtype=torch.bool)
+        n = len(self.local)
+        if masks.dim() != 2 or masks.shape[0] != n or masks.shape[1] == 0:
+            raise ValueError(f"masks must be [{n}, d] bool (one row per local learner "
+                             f"{self.local}), got {tuple(masks.shape)}.")
+        d = masks.shape[1]
+        words = -(-d // _MASK_BITS)
+        bits = torch.zeros(n, words * _MASK_BITS, dtype=torch.int64)
+        bits[:, :d] = masks.to(torch.int64)
+        place = 2 ** torch.arange(_MASK_BITS, dtype=torch.int64)
+        packed = (bits.reshape(n, words, _MASK_BITS) * place).sum(-1)  # [n, words]
+        gathered = self.comm.all_gather(packed.to(torch.float64), "demonstrated")
+        unpacked = (gathered.to(torch.int64)[..., None] // place) % 2  # [N_L, words, 52]
+        return unpacked.reshape(self.n_learners, -1)[:, :d].any(0).to(torch.bool)
 
     def disagreement(self, field: str = "cost_weights") -> float:
         """Max pairwise distance over all learners (a collective: every learner process

@@ -88,6 +88,7 @@ __all__ = [
     "certify_constraints",
     "check_indicator_basis",
     "classify_features",
+    "demonstrated_mask",
     "fnr_required",
     "joint_initial_distribution",
 ]
@@ -229,7 +230,8 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
                       demonstrations: Demonstrations | Sequence[Demonstrations],
                       temperature: float = 0.0, initial_distribution=None,
                       only=None, min_probability: float = MIN_PROBABILITY,
-                      last_move: bool = True, progress: bool = False) -> Identifiability:
+                      last_move: bool = True, also_demonstrated=None,
+                      progress: bool = False) -> Identifiability:
     """Classify cost features as demonstrated, required or undetermined (module
     docstring).
 
@@ -253,6 +255,9 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
             feature is required.
         last_move: whether the last move (the action at ``t = T-1``, the state ``s_T``)
             accrues (see :func:`accrual_probability`); "demonstrated" always counts it.
+        also_demonstrated: ``[l]`` bool, features known to be demonstrated besides those
+            ``demonstrations`` accrue (another learner's shard: :func:`demonstrated_mask`);
+            None: none.
         progress: a tqdm bar over the candidates.
 
     Raises:
@@ -290,6 +295,8 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
         demonstrated |= demonstrated_features(features, demos, model.gamma,
                                               state_features=pos.state)
     demonstrated |= _p0_features(features, p0, model, pos.state)
+    if also_demonstrated is not None:
+        demonstrated |= as_mask(also_demonstrated, features.dim, "also_demonstrated")
     unseen = ~demonstrated  # U
     probability = torch.full((features.dim,), math.nan, dtype=torch.float64)
     infeasible = torch.zeros(features.dim, dtype=torch.bool)
@@ -331,7 +338,8 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
                         demonstrations: Demonstrations | Sequence[Demonstrations],
                         temperature: float = CERTIFICATE_TEMPERATURE,
                         min_probability: float = CERTIFICATE_MIN_PROBABILITY,
-                        initial_distribution=None, progress: bool = False) -> Identifiability:
+                        initial_distribution=None, also_demonstrated=None,
+                        progress: bool = False) -> Identifiability:
     """A learner's constraint set from what it holds: the "required" test of
     :func:`classify_features` asked of the learner's own model (docs/design.md §6).
 
@@ -353,6 +361,12 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
     - ``min_probability`` 1e-3, ten times below the evaluation's 0.01: the learned reward
       is an estimate, and a required feature near the evaluation's threshold (a slip-only
       shortcut) can fall below it under the estimate (measured in docs/experiments.md).
+    - ``also_demonstrated``: the features the *other* learners' demonstrations accrue
+      (exchanged once as a bitmask, :meth:`~dicrl_torch.algos.dicrl.DICRL.network_or`).
+      The experts are the same team for every learner, so with budget 0 a feature any shard
+      accrues is no constraint: it is neither certified nor forbidden while another is
+      tested. Without it a shard of 10 trajectories that happened never to take a route
+      the experts take half the time (a tie) finds that route required.
     - ``last_move`` False: at the last decision nothing more is scored, so optimal experts
       pick any safe move, uniformly; whether a shard of m trajectories shows a given last
       move is chance ((1 - 1/k)^m), not preference. Neither the action at ``t = T-1`` nor
@@ -364,6 +378,8 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
         reward: the learned reward, ``reward_basis().weighted(η̄[:-1])``.
         cost_basis, demonstrations, initial_distribution: as :func:`classify_features`;
             the demonstrations are the learner's own.
+        also_demonstrated: ``[l]`` bool, the features the other learners' shards accrue
+            (above); None: the learner's own shard alone decides.
         temperature, min_probability: the certificate's (above).
         progress: a tqdm bar over the candidates.
 
@@ -375,7 +391,23 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
                              demonstrations=demonstrations, temperature=temperature,
                              initial_distribution=initial_distribution,
                              min_probability=min_probability, last_move=False,
-                             progress=progress)
+                             also_demonstrated=also_demonstrated, progress=progress)
+
+
+def demonstrated_mask(*, cost_basis: FeatureBasis | FactoredFeatures, model: TabularGridModel,
+                      demonstrations: Demonstrations | Sequence[Demonstrations],
+                      initial_distribution=None) -> torch.Tensor:
+    """``[l]`` bool: the features ``demonstrations`` (or P0) accrue, the "demonstrated"
+    class of :func:`classify_features` without a solve: what a learner's shard tells the
+    others about which features cannot be constraints."""
+    features, _ = _features_of(cost_basis, model)
+    shards = _shards(demonstrations, model)
+    p0 = joint_initial_distribution(model, initial_distribution)
+    state = is_state_feature(features)
+    seen = _p0_features(features, p0, model, state)
+    for demos in shards:
+        seen |= demonstrated_features(features, demos, model.gamma, state_features=state)
+    return seen
 
 
 # ------------------------------------------------------------------------ checks

@@ -31,8 +31,11 @@ from dicrl_torch.comm.traffic import Traffic, phase_of
 # What may leave a learner: η = [ω_r, λ], ω_c and the gradient trackers (Algorithm 1's,
 # and the optional gradient-tracking inner variant's), and, where every learner's ω_c is
 # known to be equal, the LSCA target ω̃ in place of ω_c's half step: every receiver knows
-# ω_c and β(n), so ω̃ = ω_c + (half - ω_c) / β reveals what the half step does.
-ALLOWED_FIELDS = ("eta", "cost_weights", "tracker", "inner_tracker", "lsca_target")
+# ω_c and β(n), so ω̃ = ω_c + (half - ω_c) / β reveals what the half step does; and once
+# per run, for the grid's certificate, which cost features a learner's shard accrues (a
+# bitmask: with budget 0 these are the features ω_c's LSCA target already pins to 0).
+ALLOWED_FIELDS = ("eta", "cost_weights", "tracker", "inner_tracker", "lsca_target",
+                  "demonstrated")
 # Control values a run coordinates its learner processes with (never learner data): the
 # run directory and id, and which outer iterations each learner has checkpointed.
 CONTROL_FIELDS = ("run_directory", "checkpointed_iterations")

@@ -21,7 +21,8 @@ from collections.abc import Iterable
 PHASES = ("inner", "outer", "control", "diagnostics")
 ALGORITHM_PHASES = ("inner", "outer")
 FIELD_PHASE = {"eta": "inner", "inner_tracker": "inner", "cost_weights": "outer",
-               "tracker": "outer", "lsca_target": "outer", "run_directory": "control",
+               "tracker": "outer", "lsca_target": "outer", "demonstrated": "outer",
+               "run_directory": "control",
                "checkpointed_iterations": "control", "config_fingerprint": "control"}
 COUNTS = ("messages", "scalars", "bytes")
 DIRECTIONS = ("sent", "received")

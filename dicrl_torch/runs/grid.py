@@ -25,6 +25,7 @@ from dicrl_torch.algos.identifiability import (
     CERTIFICATE_TEMPERATURE,
     Identifiability,
     certify_constraints,
+    demonstrated_mask,
     check_indicator_basis,
     classify_features,
     fnr_required,
@@ -213,14 +214,15 @@ class GridTask(Task):
                  constraint_rule: str = "certificate",
                  certificate_temperature: float = CERTIFICATE_TEMPERATURE,
                  certificate_min_probability: float = CERTIFICATE_MIN_PROBABILITY,
-                 threshold: float = 0.5, prune_min_gain: float | None = None,
+                 certificate_unseen: str = "network", threshold: float = 0.5, prune_min_gain: float | None = None,
                  baselines: Sequence[str] = (), baseline_epsilon: float | None = None,
                  baseline_max_constraints: int | None = None) -> None:
         s = GridSettings(
             split=split, seed=seed, eval_episodes=eval_episodes,
             expert_temperature=expert_temperature, constraint_rule=constraint_rule,
             certificate_temperature=certificate_temperature,
-            certificate_min_probability=certificate_min_probability, threshold=threshold,
+            certificate_min_probability=certificate_min_probability,
+            certificate_unseen=certificate_unseen, threshold=threshold,
             prune_min_gain=prune_min_gain, baselines=baselines,
             baseline_epsilon=baseline_epsilon, baseline_max_constraints=baseline_max_constraints)
         self.layout, self.model, self.solver = layout, model, solver
@@ -235,7 +237,9 @@ class GridTask(Task):
                                  f"(algo.constraint_rule=threshold).") from None
         self.constraint_rule = s.constraint_rule
         self.certificate = {"temperature": s.certificate_temperature,
-                            "min_probability": s.certificate_min_probability}
+                            "min_probability": s.certificate_min_probability,
+                            "unseen": s.certificate_unseen}
+        self._also_demonstrated: torch.Tensor | None = None
         self.threshold, self.prune_min_gain = s.threshold, s.prune_min_gain
         self.expert_temperature = s.expert_temperature
         self._identifiability: Identifiability | None = None
@@ -318,6 +322,20 @@ class GridTask(Task):
         return metrics
 
     # ------------------------------------------------------------------ table rows
+    def before_evaluation(self, trainer: DICRL) -> None:
+        """With the certificate over the network's unseen features
+        (``certificate_unseen="network"``): the features any learner's shard accrues, from
+        one exchange of bitmasks (a collective, as the runner calls it on every process)."""
+        self._also_demonstrated = None
+        if self.constraint_rule != "certificate" or self.certificate["unseen"] != "network":
+            return
+        p0 = self.model.initial_distribution()
+        masks = torch.stack([demonstrated_mask(cost_basis=self.cost_basis, model=self.model,
+                                               demonstrations=shard,
+                                               initial_distribution=p0)
+                             for shard in trainer.shards])
+        self._also_demonstrated = trainer.network_or(masks)
+
     def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True
                          ) -> tuple[dict, Rollouts]:
         """The table row of local learner ``i``: its policy π_{η̄, ω_c} rolled out, and its
@@ -337,7 +355,9 @@ class GridTask(Task):
                 reward=self.reward_basis().weighted(trainer.state.eta_bar[i, :-1]),
                 demonstrations=trainer.shards[i],
                 initial_distribution=self.model.initial_distribution(),
-                progress=progress, **self.certificate)
+                also_demonstrated=self._also_demonstrated, progress=progress,
+                temperature=self.certificate["temperature"],
+                min_probability=self.certificate["min_probability"])
             learned = cert.required.numpy()
             # No wall time in the row: rows must not depend on the machine or its load.
             certified = torch.nonzero(cert.required).flatten().tolist()

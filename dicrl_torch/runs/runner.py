@@ -203,6 +203,7 @@ def evaluate_method(name: str, trainer: DICRL, *, task: Task, settings: RunSetti
     saved = ckpt.evaluated_rows(name, n, evaluation)
     if saved is not None:
         print(f"{name}: rows evaluated after outer iteration {n} taken from {ckpt.path}")
+    task.before_evaluation(trainer)
     rows = []
     step = settings.outer_iterations
     for i, v in enumerate(trainer.local):

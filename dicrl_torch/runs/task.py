@@ -75,6 +75,11 @@ class Task(ABC):
         config: a checkpointed row is reused only under the same settings."""
 
     # ------------------------------------------------------------------ optional hooks
+    def before_evaluation(self, trainer) -> None:
+        """Called on every process before its learners' rows are evaluated (a place for
+        a collective the rows need, as every process of a run calls it once per method,
+        whether or not its rows come from a checkpoint). Default: nothing."""
+
     def initial_weights(self) -> dict[str, float]:
         """``η(0)`` and ``ω_c(0)`` this task has already used (a SAC warm-up trained on
         them), as ``DICRL``'s ``init_reward_weights``, ``init_multiplier``,
