@@ -25,9 +25,9 @@ from dicrl_torch.algos.identifiability import (
     CERTIFICATE_TEMPERATURE,
     Identifiability,
     certify_constraints,
-    demonstrated_mask,
     check_indicator_basis,
     classify_features,
+    demonstrated_mask,
     fnr_required,
 )
 from dicrl_torch.algos.models import TabularLearnerModel
@@ -192,6 +192,9 @@ class GridTask(Task):
             The per-iteration curves always threshold ω_c (a certificate costs a solve
             per unseen feature).
         certificate_temperature, certificate_min_probability: the certificate's.
+        certificate_unseen: ``"network"``: the certificate's candidates are the features
+            no learner's shard accrues (:meth:`before_evaluation` exchanges the bitmasks);
+            ``"own"``: those the learner's own shard does not.
         threshold: ``ω_c,j >= threshold`` marks a learned constraint (threshold rule).
         prune_min_gain: prune learned constraints the data does not need (nats per
             trajectory), or None to keep them all (threshold rule).
@@ -214,7 +217,8 @@ class GridTask(Task):
                  constraint_rule: str = "certificate",
                  certificate_temperature: float = CERTIFICATE_TEMPERATURE,
                  certificate_min_probability: float = CERTIFICATE_MIN_PROBABILITY,
-                 certificate_unseen: str = "network", threshold: float = 0.5, prune_min_gain: float | None = None,
+                 certificate_unseen: str = "network", threshold: float = 0.5,
+                 prune_min_gain: float | None = None,
                  baselines: Sequence[str] = (), baseline_epsilon: float | None = None,
                  baseline_max_constraints: int | None = None) -> None:
         s = GridSettings(

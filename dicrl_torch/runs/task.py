@@ -79,6 +79,7 @@ class Task(ABC):
         """Called on every process before its learners' rows are evaluated (a place for
         a collective the rows need, as every process of a run calls it once per method,
         whether or not its rows come from a checkpoint). Default: nothing."""
+        return None
 
     def initial_weights(self) -> dict[str, float]:
         """``η(0)`` and ``ω_c(0)`` this task has already used (a SAC warm-up trained on
