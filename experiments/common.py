@@ -52,7 +52,7 @@ GRID_TASK_KEYS = {
     "expert_temperature": "expert_temperature", "constraint_rule": "algo.constraint_rule",
     "certificate_temperature": "algo.certificate.temperature",
     "certificate_min_probability": "algo.certificate.min_probability",
-    "certificate_unseen": "algo.certificate.unseen",
+    "certificate_network": "algo.certificate.network",
     "threshold": "algo.threshold", "prune_min_gain": "algo.prune_min_gain",
     "baselines": "baselines.run", "baseline_epsilon": "baselines.epsilon",
     "baseline_max_constraints": "baselines.max_constraints"}

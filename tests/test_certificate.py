@@ -87,6 +87,39 @@ def test_a_route_another_shard_shows_is_not_certified():
     assert torch.equal(pooled.required, network.required)
 
 
+def test_a_route_only_one_reward_ranks_first_is_not_certified():
+    """tied_routes with shard A alone: a reward that pays a little for (1,2) makes the
+    route through it the only optimal one (probability 1); one that pays for (1,0) makes
+    the demonstrated route the only one (probability 0). Certified under the first alone;
+    with the second among ``other_rewards`` not (the data rank neither route first);
+    with the true reward (a tie) beside it, certified at the smaller probability, 1/2."""
+    from dicrl_torch.features.bases import FactoredReward
+
+    model, solver, reward, shard_a, _ = tied_routes()
+    basis = SharedIndicatorCostBasis(model)
+    j = basis.names.index("cell(1,2)")
+
+    def paying(cell):
+        local = reward.local.clone()
+        local[0, cell[1] * 3 + cell[0], :] += 0.01
+        return FactoredReward(local=local)
+
+    prefers_b, prefers_a = paying((1, 2)), paying((1, 0))
+
+    def certified(r, others=()):
+        cert = certify_constraints(solver=solver, reward=r, cost_basis=basis,
+                                   demonstrations=shard_a, other_rewards=others)
+        return "cell(1,2)" in names(cert, cert.required), float(cert.probability[j])
+
+    assert certified(prefers_b) == (True, pytest.approx(1.0, abs=1e-12))
+    assert certified(prefers_a)[0] is False
+    assert certified(prefers_b, [prefers_a]) == (False, pytest.approx(0.0, abs=1e-12))
+    assert certified(prefers_b, [reward]) == (True, pytest.approx(0.5, abs=1e-12))
+    # the order does not matter, and a reward repeated changes nothing
+    assert certified(prefers_a, [prefers_b])[0] is False
+    assert certified(reward, [reward, prefers_b]) == (True, pytest.approx(0.5, abs=1e-12))
+
+
 def last_move_layout():
     """3x3, one expert from (0,0) to (2,0), no obstacle, T = 3, deterministic moves::
 

@@ -339,6 +339,7 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
                         temperature: float = CERTIFICATE_TEMPERATURE,
                         min_probability: float = CERTIFICATE_MIN_PROBABILITY,
                         initial_distribution=None, also_demonstrated=None,
+                        other_rewards: Sequence[FactoredReward] = (),
                         progress: bool = False) -> Identifiability:
     """A learner's constraint set from what it holds: the "required" test of
     :func:`classify_features` asked of the learner's own model (docs/design.md §6).
@@ -367,6 +368,12 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
       accrues is no constraint: it is neither certified nor forbidden while another is
       tested. Without it a shard of 10 trajectories that happened never to take a route
       the experts take half the time (a tie) finds that route required.
+    - ``other_rewards``: further rewards the data support as well as ``reward`` (the other
+      learners' η̄: every learner estimates the same experts' reward). A feature is
+      certified only if experts optimal for *each* of them accrue it; its probability is
+      the smallest. Optimal demonstrations pin the reward's direction only loosely, and
+      a route one estimate ranks first and another second is not something the data
+      require. Only the features ``reward`` certifies are solved again.
     - ``last_move`` False: at the last decision nothing more is scored, so optimal experts
       pick any safe move, uniformly; whether a shard of m trajectories shows a given last
       move is chance ((1 - 1/k)^m), not preference. Neither the action at ``t = T-1`` nor
@@ -380,6 +387,8 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
             the demonstrations are the learner's own.
         also_demonstrated: ``[l]`` bool, the features the other learners' shards accrue
             (above); None: the learner's own shard alone decides.
+        other_rewards: rewards each certified feature must also be required under
+            (above); none: ``reward``'s certificate.
         temperature, min_probability: the certificate's (above).
         progress: a tqdm bar over the candidates.
 
@@ -387,11 +396,27 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
         The classification of every feature; its ``required`` mask ``[l]`` is the
         certified set and ``probability`` the certificate's probabilities.
     """
-    return classify_features(solver=solver, reward=reward, cost_basis=cost_basis,
-                             demonstrations=demonstrations, temperature=temperature,
-                             initial_distribution=initial_distribution,
-                             min_probability=min_probability, last_move=False,
-                             also_demonstrated=also_demonstrated, progress=progress)
+    def classify(r, only=None) -> Identifiability:
+        return classify_features(solver=solver, reward=r, cost_basis=cost_basis,
+                                 demonstrations=demonstrations, temperature=temperature,
+                                 initial_distribution=initial_distribution, only=only,
+                                 min_probability=min_probability, last_move=False,
+                                 also_demonstrated=also_demonstrated, progress=progress)
+
+    cert = classify(reward)
+    for other in other_rewards:
+        if not cert.required.any():
+            break
+        alt = classify(other, only=cert.required)
+        asked = cert.required
+        required = asked & alt.required
+        probability = torch.where(asked, torch.fmin(cert.probability, alt.probability),
+                                  cert.probability)
+        cert = replace(cert, required=required,
+                       undetermined=cert.undetermined | (asked & ~required),
+                       probability=probability, seconds=cert.seconds + alt.seconds,
+                       n_solves=cert.n_solves + alt.n_solves)
+    return cert
 
 
 def demonstrated_mask(*, cost_basis: FeatureBasis | FactoredFeatures, model: TabularGridModel,

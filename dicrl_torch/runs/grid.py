@@ -192,9 +192,10 @@ class GridTask(Task):
             The per-iteration curves always threshold ω_c (a certificate costs a solve
             per unseen feature).
         certificate_temperature, certificate_min_probability: the certificate's.
-        certificate_unseen: ``"network"``: the certificate's candidates are the features
-            no learner's shard accrues (:meth:`before_evaluation` exchanges the bitmasks);
-            ``"own"``: those the learner's own shard does not.
+        certificate_network: the certificate asks what the network knows: its candidates
+            are the features no learner's shard accrues, and each must be required under
+            every learner's η̄ (:meth:`before_evaluation` exchanges the bitmasks and η̄);
+            False: the learner's own shard and η̄ alone.
         threshold: ``ω_c,j >= threshold`` marks a learned constraint (threshold rule).
         prune_min_gain: prune learned constraints the data does not need (nats per
             trajectory), or None to keep them all (threshold rule).
@@ -217,7 +218,7 @@ class GridTask(Task):
                  constraint_rule: str = "certificate",
                  certificate_temperature: float = CERTIFICATE_TEMPERATURE,
                  certificate_min_probability: float = CERTIFICATE_MIN_PROBABILITY,
-                 certificate_unseen: str = "network", threshold: float = 0.5,
+                 certificate_network: bool = True, threshold: float = 0.5,
                  prune_min_gain: float | None = None,
                  baselines: Sequence[str] = (), baseline_epsilon: float | None = None,
                  baseline_max_constraints: int | None = None) -> None:
@@ -226,7 +227,7 @@ class GridTask(Task):
             expert_temperature=expert_temperature, constraint_rule=constraint_rule,
             certificate_temperature=certificate_temperature,
             certificate_min_probability=certificate_min_probability,
-            certificate_unseen=certificate_unseen, threshold=threshold,
+            certificate_network=certificate_network, threshold=threshold,
             prune_min_gain=prune_min_gain, baselines=baselines,
             baseline_epsilon=baseline_epsilon, baseline_max_constraints=baseline_max_constraints)
         self.layout, self.model, self.solver = layout, model, solver
@@ -242,8 +243,9 @@ class GridTask(Task):
         self.constraint_rule = s.constraint_rule
         self.certificate = {"temperature": s.certificate_temperature,
                             "min_probability": s.certificate_min_probability,
-                            "unseen": s.certificate_unseen}
+                            "network": s.certificate_network}
         self._also_demonstrated: torch.Tensor | None = None
+        self._network_rewards: torch.Tensor | None = None
         self.threshold, self.prune_min_gain = s.threshold, s.prune_min_gain
         self.expert_temperature = s.expert_temperature
         self._identifiability: Identifiability | None = None
@@ -327,11 +329,11 @@ class GridTask(Task):
 
     # ------------------------------------------------------------------ table rows
     def before_evaluation(self, trainer: DICRL) -> None:
-        """With the certificate over the network's unseen features
-        (``certificate_unseen="network"``): the features any learner's shard accrues, from
-        one exchange of bitmasks (a collective, as the runner calls it on every process)."""
-        self._also_demonstrated = None
-        if self.constraint_rule != "certificate" or self.certificate["unseen"] != "network":
+        """With the certificate of the network (``certificate_network``): the features
+        any learner's shard accrues and every learner's reward weights, from one exchange
+        of bitmasks and one of η̄ (collectives: the runner calls this on every process)."""
+        self._also_demonstrated = self._network_rewards = None
+        if self.constraint_rule != "certificate" or not self.certificate["network"]:
             return
         p0 = self.model.initial_distribution()
         masks = torch.stack([demonstrated_mask(cost_basis=self.cost_basis, model=self.model,
@@ -339,6 +341,17 @@ class GridTask(Task):
                                                initial_distribution=p0)
                              for shard in trainer.shards])
         self._also_demonstrated = trainer.network_or(masks)
+        self._network_rewards = trainer.comm.all_gather(
+            trainer.state.eta_bar, "eta", phase="outer")[:, :-1]  # [N_L, l_r]
+
+    def _other_rewards(self, trainer: DICRL, i: int) -> list:
+        """The other learners' learned rewards (:meth:`before_evaluation`), for local
+        learner ``i``'s certificate; none without the network's certificate."""
+        if self._network_rewards is None:
+            return []
+        own = trainer.local[i]
+        basis = self.reward_basis()
+        return [basis.weighted(w) for v, w in enumerate(self._network_rewards) if v != own]
 
     def evaluate_learner(self, trainer: DICRL, i: int, progress: bool = True
                          ) -> tuple[dict, Rollouts]:
@@ -360,6 +373,7 @@ class GridTask(Task):
                 demonstrations=trainer.shards[i],
                 initial_distribution=self.model.initial_distribution(),
                 also_demonstrated=self._also_demonstrated, progress=progress,
+                other_rewards=self._other_rewards(trainer, i),
                 temperature=self.certificate["temperature"],
                 min_probability=self.certificate["min_probability"])
             learned = cert.required.numpy()

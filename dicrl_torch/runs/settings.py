@@ -39,9 +39,6 @@ __all__ = ["CONSTRAINT_RULES", "EVAL_ACTIONS", "EVAL_POLICIES", "FINAL_SCORES", 
 # How a trained learner's η̄ and ω_c become its constraint set (docs/design.md §6):
 # "certificate" (ours, certify_constraints) or "threshold" (the paper's ω_c,j >= threshold).
 CONSTRAINT_RULES: tuple[str, ...] = ("certificate", "threshold")
-# Whose demonstrations decide which features the certificate may consider: every learner's
-# (a bitmask exchanged once) or the learner's own shard alone.
-CERTIFICATE_UNSEEN: tuple[str, ...] = ("network", "own")
 # The grid's baseline rows (names as in the paper) and the greedy's demonstrator model.
 GRID_BASELINES = {"ME-greedy": "me", "MCE-greedy": "mce"}
 # The continuous games' one greedy row: ME and MCE coincide on a (nearly) deterministic game.
@@ -132,7 +129,7 @@ class GridSettings:
     constraint_rule: str
     certificate_temperature: float
     certificate_min_probability: float
-    certificate_unseen: str
+    certificate_network: bool
     threshold: float
     prune_min_gain: float | None
     baselines: Sequence[str]
@@ -158,10 +155,8 @@ class GridSettings:
                 "certificate_min_probability", self.certificate_min_probability, low=0,
                 high=1, low_open=True, example=0.001,
                 why="per-trajectory probability that certifies a feature"),
-            certificate_unseen=setting_choice(
-                "certificate_unseen", self.certificate_unseen, CERTIFICATE_UNSEEN,
-                why="the features no learner's demonstrations accrue, or none of the "
-                    "learner's own"),
+            certificate_network=setting_bool("certificate_network",
+                                             self.certificate_network),
             threshold=check_threshold(self.threshold),
             prune_min_gain=setting_number("prune_min_gain", self.prune_min_gain, low=0,
                                           example=0.001, none="keep every constraint",
