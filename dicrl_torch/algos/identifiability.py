@@ -397,11 +397,13 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
         certified set and ``probability`` the certificate's probabilities.
     """
     def classify(r, only=None) -> Identifiability:
+        # one bar, over the first reward's candidates: the re-checks are a few solves
         return classify_features(solver=solver, reward=r, cost_basis=cost_basis,
                                  demonstrations=demonstrations, temperature=temperature,
                                  initial_distribution=initial_distribution, only=only,
                                  min_probability=min_probability, last_move=False,
-                                 also_demonstrated=also_demonstrated, progress=progress)
+                                 also_demonstrated=also_demonstrated,
+                                 progress=progress and only is None)
 
     cert = classify(reward)
     for other in other_rewards:
