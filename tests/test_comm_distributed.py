@@ -339,6 +339,7 @@ def test_a_silent_learner_times_out_and_is_terminated():
     assert elapsed < 60, f"took {elapsed:.1f} s"
 
 
+@pytest.mark.slow  # ~15 s of a timeout waited out; the dead learner above fails fast
 def test_a_learner_that_never_joins_times_out_at_init():
     timeout_s = 6.0
     t0 = time.monotonic()

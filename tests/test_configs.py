@@ -169,6 +169,7 @@ def test_kill_9_then_resume_reproduces_the_uninterrupted_run(tmp_path, tiny_refe
     assert set(results["training_s"]) == {"D-ICRL", "C-ICRL"}
 
 
+@pytest.mark.slow  # ~15 s; resume in place is checked by the kill -9 test
 def test_resume_elsewhere_restores_the_tensorboard_curves(tmp_path):
     """A checkpoint carried to a new run directory (another checkout or machine) arrives
     without its event files. The resumed run writes the checkpointed iterations' outer/

@@ -170,37 +170,6 @@ def test_multiplier_scale_scales_only_the_multiplier_step(setup):
                                3.0 * (eta_paper[:, -1] - mixed[:, -1]), rtol=1e-12, atol=0)
 
 
-def test_scaled_by_learners_the_average_takes_c_icrls_step_on_the_pooled_data(setup):
-    """One inner step (K = 2) from a common η: the learners' mean moves by
-    ``α/N_L Σ_v m^[v] ∇G^[v]`` with the paper's step, and by C-ICRL's step on the pooled
-    demonstrations, ``α m ∇G``, with ``scale_by_learners``: N_L times as far."""
-    solver, rb, cb, shards = setup
-    from dicrl_torch.demos.storage import Demonstrations
-
-    pooled = Demonstrations(states=np.concatenate([s.states for s in shards]),
-                            actions=np.concatenate([s.actions for s in shards]),
-                            n_cells=shards[0].n_cells, n_actions=shards[0].n_actions)
-    steps = StepSizes(alpha_bar=0.02, scale_by_learners=True)
-    c_icrl = DICRL(solver=solver, reward_basis=rb, cost_basis=cb, shards=[pooled],
-                   trajectory_counts=[pooled.n_trajectories],
-                   communicator=SimulatedCommunicator(1), steps=steps,
-                   inner_schedule=CompleteSchedule(n_learners=1),
-                   outer_schedule=CompleteSchedule(n_learners=1), inner_steps=2)
-    paper = make(setup, inner_steps=2, steps=StepSizes(alpha_bar=0.02))
-    scaled = make(setup, inner_steps=2, steps=steps)
-    cost = torch.full((cb.dim,), 0.3, dtype=torch.float64)
-    eta0 = torch.randn(paper.state.eta_bar.shape[1:],
-                       generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    n = len(SPLIT)
-    _, central = c_icrl.inner_process(cost, eta0[None])
-    _, net_paper = paper.inner_process(cost, eta0.expand(n, -1))
-    _, net_scaled = scaled.inner_process(cost, eta0.expand(n, -1))
-    torch.testing.assert_close(net_scaled.mean(0), central[0], rtol=1e-10, atol=1e-12)
-    torch.testing.assert_close(net_scaled.mean(0) - eta0, n * (net_paper.mean(0) - eta0),
-                               rtol=1e-10, atol=1e-12)
-    assert (central[0] - eta0).abs().max() > 1e-3  # the step is not vacuous
-
-
 @pytest.mark.parametrize("d", [5, 52, 53, 130])
 def test_network_or_is_the_or_of_every_learners_mask_in_52_bit_words(setup, d):
     """The OR over learners of a feature mask, packed 52 bits to a float64 word: equal to

@@ -266,11 +266,17 @@ def test_tiny_run_records_the_curves_and_writes_the_figures(tmp_path):
             assert hist[-1]["FNR"][i] == row["FNR_before_pruning"]
             assert hist[-1]["RFD"][i] == row["RFD"]
             assert isinstance(row["constraints"], list)
-    # each D-learner's traffic: its row's total is its history's last count
+    # each D-learner's traffic: its row's total is its history's last count and the
+    # certificate's two gathers to the other learner (the bitmask of d cost features in
+    # 52-bit words; the reward weights of η̄, 2 per expert)
+    d = len(res["history"]["D-ICRL"][-1]["cost_weights"][0])
+    reward_dim = 2 * res["config"]["env"]["layout"]["n_experts"]
     for i, row in enumerate(res["methods"]["D-ICRL"]["learners"]):
         sent = [h["bytes_sent"][i] for h in res["history"]["D-ICRL"]]
         assert sent == sorted(sent) and sent[0] > 0
-        assert row["traffic"]["algorithm_bytes_sent"] == sent[-1] == 1000 * row["KB_sent"]
+        total = row["traffic"]["algorithm_bytes_sent"]
+        assert total == 1000 * row["KB_sent"]
+        assert total - sent[-1] == 8 * (-(-d // 52) + reward_dim)
     assert "KB_sent" in out.stdout
     for name in ("fig2a_true_visitation", "fig2b_learned_constraints",
                  "fig2c-g_metric_curves", "identifiability_classes", "traffic"):

@@ -595,6 +595,7 @@ def test_a_plain_warm_up_is_trained_by_process_0_alone(tmp_path, monkeypatch):
     assert_same_solver(again._warmed_base(), trained)
 
 
+@pytest.mark.slow  # ~12 s; the shared warm-up is checked by the learner-process test
 def test_a_waiting_process_reads_another_configs_warm_up_once(tmp_path, monkeypatch):
     """A reused run directory holds warmup.pt and a lineage file of another config:
     while waiting, a process loads each once (not once a second), and it loads a

@@ -217,6 +217,7 @@ def test_sigterm_stops_a_torchrun_run_and_resume_finishes_it(tmp_path, simulated
     assert_same_results(tmp_path, simulated)
 
 
+@pytest.mark.slow  # ~18 s; own shard files: tests/test_configs.py, in process
 def test_torchrun_learners_on_their_own_shard_files(tmp_path, simulated):
     """Each torchrun learner reads only its own file (rank 0 pools nothing without C-ICRL):
     the D-ICRL rows and history equal those of the simulated run that drew the data."""

@@ -380,6 +380,7 @@ def test_quick_varied_runs_end_to_end(tmp_path):
     check_run(res, demos, "quick_varied", 2, SCOBEE_START_REGIONS[2])
 
 
+@pytest.mark.slow  # ~20 s; the varied protocol end to end: quick_varied above
 def test_table1_varied_runs_one_outer_iteration_at_reduced_scale(tmp_path):
     # Reduced scale: the first 2 of table1_varied's 3 experts (their blocks as in the
     # experiment), T = 8, one outer iteration, and greedy baselines that add no

@@ -77,20 +77,12 @@ class StepSizes:
     diagonal preconditioner, i.e. the same gradient method on ``λ / sqrt(scale)``. It
     matters when ``μ_r`` and ``J_ωc`` live on very different scales (the drones: μ_r is
     tens per feature, J a few units), where one α either overshoots ω_r or starves λ.
-
-    ``scale_by_learners`` multiplies every inner step by ``N_L`` (``α N_L m^[v] ∇G^[v]``).
-    Mixing with a doubly stochastic W moves the learners' average by the *mean* of their
-    steps, ``α/N_L Σ_v m^[v] ∇G^[v]``: with the paper's printed step the network moves
-    ``N_L`` times less far per inner step than C-ICRL at the same ᾱ on the pooled data
-    (``α Σ_v m^[v] ∇G^[v]``). Scaled, the average takes C-ICRL's step, as the outer step's
-    ``N_L y`` already does for ω_c; a constant factor keeps the step-size conditions.
     """
 
     alpha_bar: float = 0.05
     beta_bar: float = 0.5
     beta_power: float = 0.6
     multiplier_scale: float = 1.0
-    scale_by_learners: bool = False
 
     def __post_init__(self) -> None:
         setting_number("alpha_bar", self.alpha_bar, low=0, low_open=True, example=0.02,
@@ -98,19 +90,10 @@ class StepSizes:
         setting_number("multiplier_scale", self.multiplier_scale, low=0, low_open=True,
                        example=1.0, why="the λ coordinate's step is scaled by it; 1: the "
                                         "paper's")
-        setting_bool("scale_by_learners", self.scale_by_learners)
         setting_number("beta_bar", self.beta_bar, low=0, high=1, low_open=True,
                        high_open=True, example=0.5, why="so that β(n) ∈ (0, 1), Theorem 1")
         setting_number("beta_power", self.beta_power, low=0.5, high=1, low_open=True,
                        example=0.6, why="so that Σβ = ∞ and Σβ² < ∞, Theorem 1")
-
-    def __repr__(self) -> str:
-        # The paper's step leaves scale_by_learners out: checkpoints written before it
-        # existed keep their fingerprint.
-        extra = ", scale_by_learners=True" if self.scale_by_learners else ""
-        return (f"StepSizes(alpha_bar={self.alpha_bar!r}, beta_bar={self.beta_bar!r}, "
-                f"beta_power={self.beta_power!r}, multiplier_scale={self.multiplier_scale!r}"
-                f"{extra})")
 
     def alpha(self, k: int) -> float:
         return self.alpha_bar / (k + 1)
@@ -369,8 +352,7 @@ class DICRL:
             cb.on_inner_gradients(self, learners=self._log_rows,
                                   step=self.state.outer_iteration * self.K + k,
                                   gradients=grads, eta=eta)
-        m = self.m * self.n_learners if self.steps.scale_by_learners else self.m
-        scaled = m[:, None] * grads
+        scaled = self.m[:, None] * grads
         scaled[:, -1] *= self.steps.multiplier_scale
         return scaled
 

@@ -39,10 +39,6 @@ CHECKPOINT_IGNORED = ("env.task", "solver.progress", "solver.planner", "algo.out
                       "algo.prune_min_gain", "algo.constraint_rule", "algo.certificate",
                       "algo.run_c_icrl", "algo.run_d_icrl", "algo.c_icrl_beside_learners")
 
-# Settings added after checkpoints were written, with the value that every run before
-# them trained with: an older checkpoint lacks the key and matches that value.
-CHECKPOINT_ADDED = {"algo.steps.scale_by_learners": False}
-
 
 def _ignored(key: str) -> bool:
     """Whether a flattened config key is, or lies under, a :data:`CHECKPOINT_IGNORED` path."""
@@ -141,7 +137,6 @@ class Checkpoints:
             return
         # A checkpoint of an older release may hold keys ignored since (solver.planner).
         saved = {k: v for k, v in saved.items() if not _ignored(k)}
-        saved = {**{k: v for k, v in CHECKPOINT_ADDED.items() if k in self.config}, **saved}
         if saved == self.config:
             return
         raise ValueError(

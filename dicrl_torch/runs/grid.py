@@ -341,8 +341,8 @@ class GridTask(Task):
                                                initial_distribution=p0)
                              for shard in trainer.shards])
         self._also_demonstrated = trainer.network_or(masks)
-        self._network_rewards = trainer.comm.all_gather(
-            trainer.state.eta_bar, "eta", phase="outer")[:, :-1]  # [N_L, l_r]
+        self._network_rewards = trainer.comm.all_gather(  # ω_r of η̄, without λ: [N_L, l_r]
+            trainer.state.eta_bar[:, :-1].contiguous(), "eta", phase="outer")
 
     def _other_rewards(self, trainer: DICRL, i: int) -> list:
         """The other learners' learned rewards (:meth:`before_evaluation`), for local
