@@ -208,7 +208,9 @@ CONFIG_TINY = ["env.arena.max_steps=30", "eval_episodes=2", "n_demonstrations=4"
                "logger=none"]
 
 
-@pytest.mark.parametrize("cost", ["features/cost=position_cells",
+# position_cells is mpe_quick's own basis, run end to end by tests/test_sac_runs.py
+@pytest.mark.parametrize("cost", [pytest.param("features/cost=position_cells",
+                                               marks=pytest.mark.slow),
                                   "features/cost=local_relu"])
 def test_the_mpe_quick_config_runs_end_to_end(cost, tmp_path):
     """``experiment=mpe_quick`` (``env=mpe_spread``, ``features/reward=landmark_coverage``)

@@ -134,6 +134,7 @@ def test_torchrun_learners_reproduce_the_simulated_run(tmp_path, simulated):
     assert_same_results(tmp_path, simulated)
 
 
+@pytest.mark.slow  # ~15 s: a torchrun start-up to reach one check of the split
 def test_torchrun_world_size_must_match_the_split(tmp_path):
     out = run_train(tmp_path, "comm=distributed", launcher=torchrun(3))
     assert out.returncode != 0
