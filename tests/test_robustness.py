@@ -390,6 +390,7 @@ def test_greedy_baseline_stopped_mid_search_resumes_where_it_was(tmp_path, refer
     assert training_s[name] >= after["seconds"] > before["seconds"] > 0
 
 
+@pytest.mark.slow  # ~12 s; the merge of a job of its own: C-ICRL's test above
 def test_greedy_baselines_in_a_job_of_their_own_merge_into_the_run(tmp_path, reference_greedy,
                                                                    capsys):
     run, own = tmp_path / "run", tmp_path / "own"

@@ -99,7 +99,8 @@ def test_one_process_per_learner_gives_the_simulated_results(tmp_path, game, uni
     assert_same(tmp_path, uninterrupted)
 
 
-@games(default="mpe")
+@pytest.mark.slow  # two runs; the warm-up file's own checks: tests/test_mpe_task.py
+@pytest.mark.parametrize("game", sorted(GAMES), indirect=True)
 def test_a_warm_up_file_of_another_config_is_trained_again(tmp_path, game, uninterrupted):
     """A run directory reused under other settings: the old warm-up file is ignored and
     replaced, and the run is the uninterrupted one of its own config."""

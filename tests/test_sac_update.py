@@ -164,8 +164,8 @@ def test_the_lean_loop_learns_the_drone_task_signal():
     assert after > 1.5 * before  # a margin of learning, not a tuned amount
 
 
-# The ensemble runs the solo code path per learner: one learner is the slow suite's.
-@pytest.mark.parametrize("learners", [pytest.param(1, marks=pytest.mark.slow), 2])
+@pytest.mark.slow  # ~15-35 s on 2 threads; every suite test runs on 1 thread per process
+@pytest.mark.parametrize("learners", [1, 2])
 def test_the_numbers_do_not_depend_on_torchs_thread_count(learners):
     """At table2_quick's shapes (batch 256, 64x64 networks, per-drone split critics) the
     lean loop gives the same networks on 1 and on 2 torch threads, solo and as an
