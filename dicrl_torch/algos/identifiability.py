@@ -290,11 +290,7 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
 
     t0 = time.perf_counter()
     pos = Positive(features)  # per-feature facts, once for every candidate
-    demonstrated = torch.zeros(features.dim, dtype=torch.bool)
-    for demos in shards:
-        demonstrated |= demonstrated_features(features, demos, model.gamma,
-                                              state_features=pos.state)
-    demonstrated |= _p0_features(features, p0, model, pos.state)
+    demonstrated = _accrued(features, shards, p0, model, pos.state)
     if also_demonstrated is not None:
         demonstrated |= as_mask(also_demonstrated, features.dim, "also_demonstrated")
     unseen = ~demonstrated  # U
@@ -428,13 +424,9 @@ def demonstrated_mask(*, cost_basis: FeatureBasis | FactoredFeatures, model: Tab
     class of :func:`classify_features` without a solve: what a learner's shard tells the
     others about which features cannot be constraints."""
     features, _ = _features_of(cost_basis, model)
-    shards = _shards(demonstrations, model)
     p0 = joint_initial_distribution(model, initial_distribution)
-    state = is_state_feature(features)
-    seen = _p0_features(features, p0, model, state)
-    for demos in shards:
-        seen |= demonstrated_features(features, demos, model.gamma, state_features=state)
-    return seen
+    return _accrued(features, _shards(demonstrations, model), p0, model,
+                    is_state_feature(features))
 
 
 # ------------------------------------------------------------------------ checks
@@ -506,6 +498,16 @@ def _check_starts(shards: list[Demonstrations], p0: torch.Tensor,
             raise ValueError(
                 f"Demonstration {i} of set {k} starts at {cells}, where P0 has no mass; "
                 f"pass initial_distribution= the P0 the demonstrations were sampled from.")
+
+
+def _accrued(features: FactoredFeatures, shards: list[Demonstrations], p0: torch.Tensor,
+             model: TabularGridModel, state_features: torch.Tensor) -> torch.Tensor:
+    """``[l]`` bool: the "demonstrated" class, features some shard or P0 accrues."""
+    seen = _p0_features(features, p0, model, state_features)
+    for demos in shards:
+        seen |= demonstrated_features(features, demos, model.gamma,
+                                      state_features=state_features)
+    return seen
 
 
 def _p0_features(features: FactoredFeatures, p0: torch.Tensor, model: TabularGridModel,
