@@ -193,3 +193,34 @@ def test_the_drones_refuse_the_certificate():
     cfg = compose_train("experiment=table2_quick", "algo.constraint_rule=certificate")
     with pytest.raises(ConfigError, match="constraint_rule=threshold"):
         check_config(cfg)
+
+
+def test_overlapping_features_are_asked_about_their_own_support():
+    """thick_wall (test_identifiability) with its cells and two regions over them:
+    R = {(1,1), (1,0)} and W = the whole wall. Each tested with the other features of its
+    kind forbidden only outside its support: the cells (1,1) and (2,1) are shortcuts
+    (probability 1, as alone); R holds (1,1), W both: required. Asked again with the
+    narrower required features forbidden inside: R is left with the dead end (1,0), not
+    entered, and is dropped; W is left with the top row (1,0) (2,0), a 3-move route to
+    the goal that neither cell alone opens, and stays. Without ``open_overlaps`` every
+    wall cell is covered by a region while it is tested, and nothing is required."""
+    from dicrl_torch.features.bases import RegionIndicatorCostBasis
+
+    model, solver, reward, demos = thick_wall()
+    wall = [(1, 0), (2, 0), (1, 1), (2, 1)]
+    basis = RegionIndicatorCostBasis(model, regions={"R": [(1, 1), (1, 0)], "W": wall})
+    kw = dict(solver=solver, reward=reward, cost_basis=basis, demonstrations=demos)
+    cert = certify_constraints(**kw)
+    assert names(cert, cert.required) == {"cell(1,1)", "cell(2,1)", "region W"}
+    r = basis.names.index("region R")
+    assert float(cert.probability[r]) == pytest.approx(0.0, abs=1e-12)
+    assert float(cert.probability[basis.names.index("region W")]) == pytest.approx(1.0)
+    closed = classify_features(**kw, temperature=0.0, min_probability=1e-3, last_move=False)
+    assert not closed.required.any()
+    # Indicator bases have no overlaps: the certificate is the same either way.
+    cells = SharedIndicatorCostBasis(model)
+    kw["cost_basis"] = cells
+    opened = classify_features(**kw, temperature=0.0, last_move=False, open_overlaps=True)
+    shut = classify_features(**kw, temperature=0.0, last_move=False)
+    assert torch.equal(opened.required, shut.required)
+    assert torch.equal(opened.probability.nan_to_num(-1), shut.probability.nan_to_num(-1))

@@ -80,14 +80,14 @@ RUNS = [
          "comm/compression": "lossless", "logger": "tensorboard",
          "baselines": "greedy"},
         GRID_TINY, [*BILEVEL, "ME-greedy", "MCE-greedy", *GRID_EXPERTS]),
-    Run("grid-table1_small-random_mlp-complete",
+    Run("grid-table1_small-local_relu_grid-complete",
         {"experiment": "table1_small", "env": "gridworld", "features/reward": "goal_closeness",
-         "features/cost": "random_mlp", "solver": "factored", "algo": "dicrl",
+         "features/cost": "local_relu_grid", "solver": "factored", "algo": "dicrl",
          "graph": "complete", "comm": "simulated",
          "comm/compression": "lossless", "logger": "tensorboard",
          "baselines": "greedy"},
         GRID_TINY, [*BILEVEL, "ME-greedy", "MCE-greedy", *GRID_EXPERTS], truth=False,
-        # a basis positive everywhere: no certificate, the paper's rule
+        # a basis without per-feature truth, under the paper's rule
         extra=["algo.constraint_rule=threshold"]),
     Run("grid-quick_varied-shared-time_varying",
         {"experiment": "quick_varied", "env": "gridworld_varied",

@@ -62,7 +62,7 @@ def reference(tiny_reference) -> Path:
 # ---------------------------------------------------------------------- configuration
 @pytest.mark.parametrize("group,option", [
     ("env", "gridworld"), ("env", "gridworld_open"), ("features/cost", "per_expert"),
-    ("features/cost", "random_mlp"), ("graph", "ring"), ("comm", "distributed"),
+    ("features/cost", "local_relu_grid"), ("graph", "ring"), ("comm", "distributed"),
     ("logger", "none"), ("baselines", "greedy"), ("experiment", "table1"),
     ("experiment", "table1_small")])
 def test_every_shipped_config_passes_the_checks(group, option):

@@ -147,45 +147,91 @@ class Positive:
         self.local = features.local > 0
         self.cell = self.local[:, :, 0]
         self.joint = None if features.joint is None else features.joint > 0
+        self._joint_columns = features.joint_columns
         self.state = is_state_feature(features) if state_features is None else state_features
+
+    def overlaps(self) -> torch.Tensor:
+        """``[l, l]`` bool: features of one kind whose supports meet: two state features
+        positive on a common cell of an expert, two features of the moves positive on a
+        common state-action pair, two joint features positive on a common joint state
+        (every feature overlaps itself where it is positive somewhere). Indicator bases
+        have none but themselves: their cells, moves and collision are disjoint."""
+        N, S1, A1, l = self.local.shape
+        cells = self.cell.reshape(N * S1, l).to(torch.float64)
+        pairs = self.local.reshape(N * S1 * A1, l).to(torch.float64)
+        state = self.state
+        out = ((cells.T @ cells) > 0) & state[:, None] & state[None, :]
+        moves = ~state & self.local.flatten(0, 2).any(0)
+        out |= ((pairs.T @ pairs) > 0) & moves[:, None] & moves[None, :]
+        if self.joint is not None:
+            joint = self.joint.to(torch.float64)
+            cols = self._joint_columns
+            out[cols[:, None], cols[None, :]] |= (joint.T @ joint) > 0
+        return out
 
 
 class AllButOne:
     """The hard masks of ``U \\ {j}`` for the features ``j`` of ``U``, exactly as
     :func:`~dicrl_torch.algos.greedy.constraint_masks` builds them, from counts of the
     features of ``U`` positive at each pair, cell and joint state: one pass over the
-    features for all candidates instead of one per candidate."""
+    features for all candidates instead of one per candidate.
+
+    With ``open_support`` the mask leaves ``j``'s whole support open to features of its
+    kind (:meth:`Positive.overlaps`): a pair where ``j`` is positive is forbidden only by
+    a feature of another kind (a move inside a cell), so a unit nested in a wider one is
+    asked whether its own support is needed. Indicator bases have no two features of one
+    kind positive at one pair, and get the same masks either way."""
 
     def __init__(self, features: FactoredFeatures, unseen: torch.Tensor, pos: Positive,
                  model: TabularGridModel) -> None:
         self.features, self.unseen, self.pos, self.model = features, unseen, pos, model
         self.count = pos.local[..., unseen].sum(-1)  # [N, S1, A1]
+        self.state_count = pos.local[..., unseen & pos.state].sum(-1)  # [N, S1, A1]
         self.cell_count = pos.cell[..., unseen & pos.state].sum(-1)  # [N, S1]
         self.joint_count = None
         if features.joint is not None:
             self.joint_count = pos.joint[:, unseen[features.joint_columns]].sum(-1)  # [S]
 
-    def __call__(self, j: int) -> tuple[FactoredReward, torch.Tensor | None]:
-        """``(mask, terminal)`` of ``U \\ {j}`` (``j`` in ``U``)."""
+    def __call__(self, j: int, open_support: bool = False,
+                 rivals: torch.Tensor | None = None
+                 ) -> tuple[FactoredReward, torch.Tensor | None]:
+        """``(mask, terminal)`` of ``U \\ {j}`` (``j`` in ``U``); with ``open_support``,
+        of ``U`` outside ``j``'s support for its kind (class docstring); ``rivals``
+        ``[l]`` bool: features forbidden everywhere, inside ``j``'s support too."""
         features, pos, model = self.features, self.pos, self.model
         others = self.unseen.clone()
         others[j] = False
-        hit = (self.count - pos.local[..., j].long()) > 0  # [N, S1, A1]
+        mine = pos.local[..., j]  # [N, S1, A1]
+        if open_support:
+            state = bool(pos.state[j])
+            kin = self.state_count if state else self.count - self.state_count
+            hit = ((self.count - kin) > 0) | (((kin - mine.long()) > 0) & ~mine)
+        else:
+            hit = (self.count - mine.long()) > 0  # [N, S1, A1]
+        if rivals is not None:
+            others |= rivals
+            hit = hit | pos.local[..., rivals].any(-1)
         local = torch.zeros(hit.shape, dtype=torch.float64).masked_fill(hit, -math.inf)
         joint = joint_hit = None
         if features.joint is not None and others[features.joint_columns].any():
-            mine = features.joint_columns == j
-            count = self.joint_count
-            if mine.any():
-                count = count - pos.joint[:, mine].sum(-1)
-            joint_hit = count > 0  # [S]
+            cols = features.joint_columns
+            mine_joint = pos.joint[:, cols == j].any(-1)  # [S]
+            count = self.joint_count - mine_joint.long()
+            joint_hit = (count > 0) & ~mine_joint if open_support else count > 0
+            if rivals is not None and rivals[cols].any():
+                joint_hit = joint_hit | pos.joint[:, rivals[cols]].any(-1)
             joint = torch.zeros(joint_hit.shape, dtype=torch.float64).masked_fill(
                 joint_hit, -math.inf)
         mask = FactoredReward(local=local, joint=joint)
         if not (others & pos.state).any():
             return mask, None
-        count = self.cell_count - pos.cell[..., j].long() if pos.state[j] else self.cell_count
-        bad = cells_or_joint(count > 0, joint_hit, model)
+        mine_cell = pos.cell[..., j] if pos.state[j] else torch.zeros_like(pos.cell[..., 0])
+        bad = (self.cell_count - mine_cell.long()) > 0
+        if open_support:
+            bad = bad & ~mine_cell
+        if rivals is not None:
+            bad = bad | pos.cell[..., rivals & pos.state].any(-1)
+        bad = cells_or_joint(bad, joint_hit, model)
         return mask, torch.zeros(model.state_shape, dtype=torch.float64).masked_fill(
             bad, -math.inf)
 

@@ -231,6 +231,7 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
                       temperature: float = 0.0, initial_distribution=None,
                       only=None, min_probability: float = MIN_PROBABILITY,
                       last_move: bool = True, also_demonstrated=None,
+                      open_overlaps: bool = False,
                       progress: bool = False) -> Identifiability:
     """Classify cost features as demonstrated, required or undetermined (module
     docstring).
@@ -258,6 +259,16 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
         also_demonstrated: ``[l]`` bool, features known to be demonstrated besides those
             ``demonstrations`` accrue (another learner's shard: :func:`demonstrated_mask`);
             None: none.
+        open_overlaps: for a basis whose features overlap (a deep basis' units of
+            several sizes, a region beside its cells): while ``j`` is tested, the other
+            unseen features of its kind forbid nothing inside ``j``'s support
+            (:class:`AllButOne`'s ``open_support``), so that a unit nested in another
+            can be tested at all; then every required feature that overlaps narrower
+            required ones (:meth:`Positive.overlaps`) is tested again with those
+            forbidden inside its support too, narrowest first, and is dropped where it
+            is no longer accrued (a coarse unit required only for the fine one inside
+            it; one that closes a route no narrower one closes stays). Indicator bases
+            have no overlaps: the classes are the same either way.
         progress: a tqdm bar over the candidates.
 
     Raises:
@@ -306,25 +317,54 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
     masks = AllButOne(features, unseen, pos, model)
     chain = Chain(model, solver.device)
     solve = (candidate_solver(solver) if temperature == 0.0 else solver).solve
-    for j in steps:
-        mask, terminal = masks(j)  # U \ {j}
+    overlaps = pos.overlaps() & unseen[None, :] if open_overlaps else None
+
+    def accrual(j: int, rivals: torch.Tensor | None = None) -> float | None:
+        """P(experts accrue φ_j) with U \\ {j} forbidden (``open_overlaps``: outside
+        j's support, and ``rivals`` inside it too); None: infeasible."""
+        mask, terminal = masks(j, open_overlaps, rivals)
         sol = solve(reward + mask, temperature=temperature, forward=False,
                     terminal_value=terminal)
-        v0 = sol.V[0].cpu()[support]
-        if not torch.isfinite(v0).all():
-            infeasible[j] = True
-            continue
+        if not torch.isfinite(sol.V[0].cpu()[support]).all():
+            return None
         target = torch.zeros(features.dim, dtype=torch.bool)
         target[j] = True
-        probability[j] = killed_forward(
+        return killed_forward(
             sol, Hits(features, target, model, solver.device, last_move, pos), d0, chain)
+
+    for j in steps:
+        p = accrual(j)
+        if p is None:
+            infeasible[j] = True
+        else:
+            probability[j] = p
+    n_solves = len(candidates)
+    if overlaps is not None:
+        # A required feature overlapping narrower required ones, asked again with them
+        # forbidden inside its support too, narrowest first: kept only if still
+        # accrued, i.e. if it forbids more than the narrower ones do.
+        required = unseen & scope & (probability >= min_probability)
+        width = pos.local.flatten(0, 2).sum(0) + (
+            torch.zeros(features.dim, dtype=torch.long) if pos.joint is None else
+            torch.zeros(features.dim, dtype=torch.long).index_add(
+                0, features.joint_columns, pos.joint.sum(0)))
+        for j in sorted(torch.nonzero(required).flatten().tolist(),
+                        key=lambda k: (int(width[k]), k)):
+            rivals = overlaps[j] & required & (width < width[j])
+            if not rivals.any():
+                continue
+            p = accrual(j, rivals)
+            n_solves += 1
+            if p is None or p < min_probability:
+                required[j] = False
+                probability[j] = math.nan if p is None else p
     seconds = time.perf_counter() - t0
     required = unseen & scope & (probability >= min_probability)
     return Identifiability(
         names=names, scope=scope, demonstrated=demonstrated & scope, required=required,
         undetermined=unseen & scope & ~required, probability=probability,
         infeasible=infeasible, min_probability=float(min_probability),
-        temperature=float(temperature), seconds=seconds, n_solves=len(candidates),
+        temperature=float(temperature), seconds=seconds, n_solves=n_solves,
         accrued=demonstrated)
 
 
@@ -398,7 +438,7 @@ def certify_constraints(*, solver: FactoredSoftBellman, reward: FactoredReward,
                                  demonstrations=demonstrations, temperature=temperature,
                                  initial_distribution=initial_distribution, only=only,
                                  min_probability=min_probability, last_move=False,
-                                 also_demonstrated=also_demonstrated,
+                                 also_demonstrated=also_demonstrated, open_overlaps=True,
                                  progress=progress and only is None)
 
     cert = classify(reward)
@@ -442,7 +482,7 @@ def _features_of(cost_basis, model: TabularGridModel) -> tuple[FactoredFeatures,
     if features.local.min() < 0 or (features.joint is not None and features.joint.min() < 0):
         raise ValueError("The cost features must be non-negative: a feature is accrued "
                          "where it is positive. Use an indicator basis (shared, per_expert, "
-                         "regions).")
+                         "regions) or features with exact zeros (local_relu_grid).")
     # φ_j(s, a) >= Σ_i min local_i + min joint: positive everywhere when that is.
     floor = features.local.amin(dim=(1, 2)).sum(0)
     if features.joint is not None:
@@ -454,8 +494,10 @@ def _features_of(cost_basis, model: TabularGridModel) -> tuple[FactoredFeatures,
         raise ValueError(
             f"{len(bad)} cost feature(s) are positive on every state-action pair ({shown}), "
             f"so every trajectory accrues them and identifiability says nothing about them "
-            f"(e.g. a frozen random MLP basis). Use an indicator basis (shared, per_expert, "
-            f"regions).")
+            f"(e.g. a frozen random MLP basis: a sigmoid is positive everywhere). Use features "
+            f"with exact zeros: features/cost=local_relu_grid (GridLocalReLUBasis), an "
+            f"indicator basis (shared, per_expert, regions), or end your network with a ReLU "
+            f"clipped to max_value.")
     return features, names
 
 

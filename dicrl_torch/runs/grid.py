@@ -52,6 +52,8 @@ from dicrl_torch.metrics import (
     rollout_true_cmg,
     true_constraints_of,
 )
+from dicrl_torch.runs.grid_regions import GridRegionScoring
+from dicrl_torch.runs.results import REGION_COLUMNS
 from dicrl_torch.runs.settings import GRID_BASELINES, GridSettings, with_defaults
 from dicrl_torch.runs.task import Rollouts, Task
 from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
@@ -167,7 +169,7 @@ def concatenate(shards: Sequence[Demonstrations]) -> Demonstrations:
                           n_cells=shards[0].n_cells, n_actions=shards[0].n_actions)
 
 
-class GridTask(Task):
+class GridTask(GridRegionScoring, Task):
     """The grid world's run: problem, evaluation, baselines and figures.
 
     Args:
@@ -208,7 +210,8 @@ class GridTask(Task):
         ValueError: a cost basis the certificate cannot use, shard files that do not fit.
     """
 
-    columns = ("CR", "FPR", "FNR", "FNR_required", "CVR", "RFD")
+    columns = ("CR", "FPR", "FNR", "FNR_required", *REGION_COLUMNS, "obstacle_recall_required",
+               "obstacle_FPR", "obstacle_FPR_determined", "CVR", "RFD")
 
     def __init__(self, *, layout: GridLayout, model: TabularGridModel, solver, reward_basis,
                  cost_basis, true_reward_weights: torch.Tensor, expert_solver=None,
@@ -243,7 +246,10 @@ class GridTask(Task):
         self.constraint_rule = s.constraint_rule
         self.certificate = {"temperature": s.certificate_temperature,
                             "min_probability": s.certificate_min_probability,
-                            "network": s.certificate_network}
+                            "network": s.certificate_network,
+                            # overlapping features asked about their own support (rows
+                            # from before it are evaluated again on resume)
+                            "open_overlaps": True}
         self._also_demonstrated: torch.Tensor | None = None
         self._network_rewards: torch.Tensor | None = None
         self.threshold, self.prune_min_gain = s.threshold, s.prune_min_gain
@@ -304,6 +310,8 @@ class GridTask(Task):
             save_demonstrations(out / "demos.npz", self.demos)
         self.make_baselines({}, progress=False)  # a baseline that cannot run fails now
         print(self.describe())
+        self.check_expressive()
+        self.print_expressivity()
 
     def learner_model(self, local_ids: Sequence[int], shards: Sequence, stream: int
                       ) -> TabularLearnerModel:
@@ -393,7 +401,8 @@ class GridTask(Task):
             learned = learned_constraints(trainer.state.cost_weights[i], self.threshold)
         row = ev.rollout(trainer.policy(i).policy_at)
         row.update(extra)
-        row.update(ev.rates(learned),
+        row.update(ev.rates(learned), **self.region_rates(learned),
+                   **self.recall_bound(trainer.shards[i]),
                    RFD=reward_function_distance(trainer.state.eta_bar[i, :-1],
                                                 ev.true_reward_weights),
                    SR=None, multiplier=float(trainer.state.eta_bar[i, -1]),
@@ -402,13 +411,15 @@ class GridTask(Task):
         return row, ()
 
     def constraint_map(self, label: str, row: dict, rollouts: Rollouts = ()) -> np.ndarray:
-        """PNG-ready map of a row's learned cell (and region) constraints (red crosses)
-        over the true obstacles (bright); ``rollouts`` (none are kept) are not drawn."""
+        """PNG-ready map of the cells a row's learned set forbids (red crosses: an expert
+        there accrues learned cost whatever it does, :meth:`predicted_cells`, whatever
+        the basis) over the true obstacles (bright); ``rollouts`` (none are kept) are not
+        drawn."""
         heat = np.zeros(self.layout.n_cells)
         heat[obstacle_cells(self.layout)] = 1.0
-        cells = constraint_cells(self.layout, row["constraints"], self.cost_basis.region_cells)
-        return render_grid(self.layout, heat=heat, constraint_cells=cells,
-                           title=f"{label}: learned cell constraints (x)")
+        return render_grid(self.layout, heat=heat,
+                           constraint_cells=self.predicted_cells(self.learned_mask(row)),
+                           title=f"{label}: cells the learned set forbids (x)")
 
     def reference_rows(self) -> dict[str, dict]:
         """The experts' rows: in the true CMG and in the nominal game."""
@@ -453,7 +464,8 @@ class GridTask(Task):
                             "improvement": result.improvement[k - 1] if k else None,
                             **ev.rates(mask)})
         row = ev.rollout(result.solution.policy_at)
-        row.update(ev.rates(result.constraint_mask), RFD=None, SR=None,
+        row.update(ev.rates(result.constraint_mask),
+                   **self.region_rates(result.constraint_mask.numpy()), RFD=None, SR=None,
                    n_learned=len(result.added), stop_reason=result.stop_reason)
         row["constraints"] = constraint_names(self.cost_basis.names, result.constraint_mask)
         return row, history, ()

@@ -55,14 +55,21 @@ TABLE2_COLUMNS = ("FPR", "FNR", "CVR", "SR")
 _FORMATS = {"FPR": (7, ".2f"), "FNR": (7, ".2f"), "CVR": (8, ".3f"), "RFD": (8, ".3f"),
             "SR": (7, ".2f"), "FNR_required": (8, ".2f"), "region_recall": (7, ".2f"),
             "region_precision": (7, ".2f"), "region_precision_determined": (8, ".2f"),
-            "region_iou": (7, ".2f"), "KB_sent": (9, ".1f")}
+            "region_iou": (7, ".2f"), "obstacle_recall_required": (7, ".2f"),
+            "obstacle_FPR": (7, ".2f"), "obstacle_FPR_determined": (8, ".2f"),
+            "KB_sent": (9, ".1f")}
 # The region scores (dicrl_torch.region): recall, precision (undetermined states counted
-# as false / set apart) and IoU of the learned set as a classifier of states.
+# as false / set apart) and IoU of the learned set as a classifier of states; the grid's
+# recall over the required obstacle cells and FPR over the free cells.
 _HEADERS = {"FNR_required": "FNR_req", "region_recall": "R_rec", "region_precision": "R_prec",
             "region_precision_determined": "R_prec*", "region_iou": "R_IoU",
-            "KB_sent": "KB_sent"}
+            "obstacle_recall_required": "O_req", "obstacle_FPR": "O_FPR",
+            "obstacle_FPR_determined": "O_FPR*", "KB_sent": "KB_sent"}
 REGION_COLUMNS = ("region_recall", "region_precision", "region_precision_determined",
                   "region_iou")
+# The grid's scores of (expert, cell) pairs and of moves (dicrl_torch.runs.grid_regions).
+OBSTACLE_COLUMNS = ("obstacle_recall", "obstacle_recall_required", "obstacle_FPR",
+                    "obstacle_FPR_determined", "move_recall", "move_FPR")
 
 
 def print_table(methods: dict, columns: Sequence[str] = TABLE1_COLUMNS) -> None:

@@ -30,7 +30,13 @@ from dicrl_torch.figures import save_png
 from dicrl_torch.io import write_json
 from dicrl_torch.runs.callbacks import CheckpointEvery, OuterMetrics, RunOf, TensorBoardValues
 from dicrl_torch.runs.checkpoints import Checkpoints, progress_of
-from dicrl_torch.runs.results import REGION_COLUMNS, print_table, print_timings, results_record
+from dicrl_torch.runs.results import (
+    OBSTACLE_COLUMNS,
+    REGION_COLUMNS,
+    print_table,
+    print_timings,
+    results_record,
+)
 from dicrl_torch.runs.signals import Interrupted, StopOnSignal, stoppable
 from dicrl_torch.runs.task import Rollouts, Task
 
@@ -162,7 +168,7 @@ def log_row(task: Task, logger, run: str, label: str, row: dict, rollouts: Rollo
     if img is not None:
         logger.image(run, "eval/constraint_map", img, step)
         save_png(png, img)
-    for key in ("CR", "CVR", "SR", *REGION_COLUMNS):
+    for key in ("CR", "CVR", "SR", *REGION_COLUMNS, *OBSTACLE_COLUMNS):
         value = row.get("CR_mean" if key == "CR" else key)
         if value is not None:
             logger.scalar(run, f"eval/{key}", value, step)

@@ -1,5 +1,6 @@
-"""Region scores (dicrl_torch.region) of finished continuous runs' learned sets, from their
-config and rows alone: no training, no rollouts (docs/design.md §6.1).
+"""Region scores (dicrl_torch.region) of finished runs' learned sets, from their config and
+rows alone: no training, no rollouts (docs/design.md §6.1). Continuous games and the grid
+(whose rows also get the obstacle and move scores).
 
     .venv/bin/python experiments/studies/region_scores.py docs/mpe_runs/seed0 [RUN_DIR ...]
 
@@ -40,7 +41,8 @@ def scores(run: Path) -> list[dict]:
             out.append({"run": str(run), "seed": cfg.seed, "method": name, "learner": v + 1,
                         **task.region_rates(task.learned_mask(row)),
                         "region_recall_bound": bound, "SR": row.get("SR"),
-                        "CVR": row.get("CVR"), "n_learned": row.get("n_learned")})
+                        "CR": row.get("CR_mean"), "CVR": row.get("CVR"),
+                        "n_learned": row.get("n_learned")})
     return out
 
 

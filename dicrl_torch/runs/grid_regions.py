@@ -1,0 +1,266 @@
+"""Region scores and expressivity of the grid world: :class:`GridRegionScoring`, a mixin
+of :class:`~dicrl_torch.runs.grid.GridTask` (docs/design.md §6.1, "Regions").
+
+The grid's truth is a function of the joint state (an expert on an obstacle, two in one
+cell) and of the move (a forbidden action), whatever the cost basis. Every learned set is
+scored against it, exactly, over all ``S = S1^N`` joint states (no sampling):
+
+- a joint state is *predicted forbidden* when the learned cost on the learned set is
+  positive there for every joint action (budget 0: ``C_j = {φ_j > 0}``), i.e.
+  ``min_a Σ_{j∈L} φ_j(s, a) > 0``, computed in factored form;
+- a cell is predicted forbidden for expert ``i`` when every joint state with expert ``i``
+  there is (the rule the obstacle scores use: an expert standing there accrues learned
+  cost whatever it and the others do); a move when every expert taking it anywhere
+  accrues learned cost (action constraints, scored apart);
+- a free joint state is *undetermined* when an expert stands farther than one
+  demonstrated move from every cell the demonstrations enter, or two experts are closer
+  (Chebyshev) than the demonstrations ever bring them: the band comes from the
+  demonstrations, never from the truth.
+
+The obstacle scores count (expert, cell) pairs: recall over the obstacles, over the
+*required* ones (those the demonstrations make required, classified with the shared cell
+basis and the true reward: evaluation only), and FPR over the free cells, counting the
+undetermined ones (farther than a demonstrated move from every cell the demonstrations
+enter) or setting them apart.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from dicrl_torch.algos.identifiability import classify_features, demonstrated_mask
+from dicrl_torch.envs.grid import GridLayout
+from dicrl_torch.features.bases import FactoredFeatures, SharedIndicatorCostBasis
+from dicrl_torch.region import region_scores
+
+__all__ = ["GridRegionScoring", "grid_forbidden", "grid_undetermined", "predicted_cost_floor"]
+
+
+def _joint_grid(tables: list[torch.Tensor], n_cells: int) -> torch.Tensor:
+    """``[S1]*N``: the sum of per-expert tables ``[S1]``, expert 1 most significant."""
+    n = len(tables)
+    out = torch.zeros((n_cells,) * n, dtype=torch.float64)
+    for i, t in enumerate(tables):
+        shape = [1] * n
+        shape[i] = n_cells
+        out = out + t.reshape(shape)
+    return out
+
+
+def predicted_cost_floor(features: FactoredFeatures, learned: Any, n_cells: int
+                         ) -> torch.Tensor:
+    """``[S1]*N`` the least learned cost over joint actions at each joint state,
+    ``min_a Σ_{j∈L} φ_j(s, a) = Σ_i min_{a_i} c_i(s_i, a_i) + c_joint(s)`` with the
+    learned set ``L`` ``[l]`` bool (weight 1 on each: only positivity matters)."""
+    w = torch.as_tensor(np.asarray(learned, dtype=np.float64))
+    cost = features.weighted(w)
+    floor = _joint_grid(list(cost.local.amin(dim=2)), n_cells)
+    if cost.joint is not None:
+        floor = floor + cost.joint.reshape(floor.shape)
+    return floor
+
+
+def grid_forbidden(layout: GridLayout, n_experts: int) -> torch.Tensor:
+    """``[S1]*N`` bool: the joint states a true constraint forbids (an expert on an
+    obstacle; two in one cell where the layout forbids collisions)."""
+    S1 = layout.n_cells
+    obstacle = torch.from_numpy(layout.obstacle_mask()).to(torch.float64)
+    out = _joint_grid([obstacle] * n_experts, S1) > 0
+    if layout.collision_constraint and n_experts > 1:
+        cells = torch.meshgrid(*[torch.arange(S1)] * n_experts, indexing="ij")
+        for i in range(n_experts):
+            for j in range(i + 1, n_experts):
+                out |= cells[i] == cells[j]
+    return out
+
+
+def _chebyshev(layout: GridLayout, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    G = layout.size
+    return torch.maximum((a % G - b % G).abs(), (a // G - b // G).abs())
+
+
+def grid_undetermined(layout: GridLayout, free: torch.Tensor, states: np.ndarray
+                      ) -> tuple[torch.Tensor, dict]:
+    """Which free joint states no demonstration speaks about (module docstring).
+
+    Args:
+        free: ``[S1]*N`` bool.
+        states: the demonstrations' joint cells ``[n, T+1, N]`` int.
+
+    Returns:
+        ``[S1]*N`` bool and the band ``{"step", "min_separation"}`` (Chebyshev cells)
+        with ``near`` ``[S1]`` bool, the cells within ``step`` of a demonstrated one.
+    """
+    S1, N = layout.n_cells, free.ndim
+    cells = torch.from_numpy(np.array(states, dtype=np.int64))
+    step = int(_chebyshev(layout, cells[:, 1:], cells[:, :-1]).max()) if cells.shape[1] > 1 \
+        else 0
+    seen = torch.zeros(S1, dtype=torch.bool)
+    seen[cells.reshape(-1)] = True
+    everyone = torch.arange(S1)
+    near = (_chebyshev(layout, everyone[:, None], everyone[seen][None, :]) <= step).any(1)
+    far = _joint_grid([(~near).to(torch.float64)] * N, S1) > 0
+    separation = float("inf")
+    close = torch.zeros_like(free)
+    if N > 1:
+        pairs = [(i, j) for i in range(N) for j in range(i + 1, N)]
+        separation = min(int(_chebyshev(layout, cells[..., i], cells[..., j]).min())
+                         for i, j in pairs)
+        grids = torch.meshgrid(*[everyone] * N, indexing="ij")
+        for i, j in pairs:
+            close |= _chebyshev(layout, grids[i], grids[j]) < separation
+    return free & (far | close), {"step": step, "min_separation": separation,
+                                  "near": near}
+
+
+class GridRegionScoring:
+    """The region machinery of :class:`~dicrl_torch.runs.grid.GridTask` (a mixin: it
+    uses the task's ``layout``, ``model``, ``solver``, ``cost_basis``, ``reward_basis``,
+    ``evaluation``, ``demos``, ``shards``, ``expert_temperature`` and
+    ``identifiability()``)."""
+
+    def region_test(self) -> dict[str, Any]:
+        """Computed once: the truth ``forbidden`` ``[S1]*N``, the ``undetermined`` free
+        states and the band (None when this process does not hold every demonstration:
+        a learner of a distributed run on its own file), and the cost ``features``."""
+        if not hasattr(self, "_region_test"):
+            forbidden = grid_forbidden(self.layout, self.model.n_experts)
+            undetermined, band = (None, None) if self.demos is None else \
+                grid_undetermined(self.layout, ~forbidden, self.demos.states)
+            self._region_test = {"forbidden": forbidden, "undetermined": undetermined,
+                                 "band": band, "features": self.cost_basis()}
+        return self._region_test
+
+    def required_obstacles(self) -> torch.Tensor | None:
+        """``[S1]`` bool: the obstacle cells the pooled demonstrations make required,
+        classified with the shared cell basis under the true reward (evaluation only;
+        one solve per undemonstrated obstacle); None without every demonstration."""
+        if not hasattr(self, "_required_obstacles"):
+            self._required_obstacles = None
+            if type(self.cost_basis) is SharedIndicatorCostBasis:
+                # the evaluation's own classification asked the same question of these
+                ident = self.identifiability()
+                if ident is not None:
+                    self._required_obstacles = ident.required[:self.model.n_cells].clone()
+            elif self.demos is not None:
+                basis = SharedIndicatorCostBasis(self.model)
+                only = torch.zeros(basis.dim, dtype=torch.bool)
+                only[:self.model.n_cells] = torch.from_numpy(self.layout.obstacle_mask())
+                reward = self.reward_basis().weighted(self.evaluation.true_reward_weights)
+                ident = classify_features(solver=self.solver, reward=reward,
+                                          cost_basis=basis, demonstrations=self.demos,
+                                          temperature=self.expert_temperature, only=only)
+                self._required_obstacles = ident.required[:self.model.n_cells].clone()
+        return self._required_obstacles
+
+    def region_rates(self, learned: Any) -> dict[str, float | None]:
+        """The learned set ``[l_c]`` bool as a classifier of joint states
+        (``region_*``, :func:`~dicrl_torch.region.region_scores`), of (expert, cell)
+        pairs (``obstacle_*``) and of moves (``move_*``); a score that needs every
+        demonstration is None in a process without them."""
+        test = self.region_test()
+        feats, forbidden = test["features"], test["forbidden"]
+        N, S1 = self.model.n_experts, self.model.n_cells
+        predicted = predicted_cost_floor(feats, learned, S1) > 0
+        undetermined = test["undetermined"]
+        scores = region_scores(forbidden.reshape(-1).numpy(), predicted.reshape(-1).numpy(),
+                               np.zeros(forbidden.numel(), dtype=bool) if undetermined is None
+                               else undetermined.reshape(-1).numpy())
+        out = {f"region_{k}": v for k, v in scores.items()}
+        if undetermined is None:
+            out.update(region_precision_determined=None, region_undetermined=None)
+        # Cell c is forbidden for expert i when every joint state with i at c is.
+        cells = torch.stack([predicted.movedim(i, 0).reshape(S1, -1).all(1)
+                             for i in range(N)])  # [N, S1]
+        obstacle = torch.from_numpy(self.layout.obstacle_mask())
+        required = self.required_obstacles()
+        w = torch.as_tensor(np.asarray(learned, dtype=np.float64))
+        move_cost = feats.weighted(w).local  # [N, S1, A1]: the joint part reads no move
+        moves = (move_cost > 0).all(1).all(0)  # [A1]
+        truth = torch.from_numpy(self.layout.forbidden_action_mask())
+
+        def share(hit: torch.Tensor, where: torch.Tensor) -> float | None:
+            return float(hit[..., where].float().mean()) if bool(where.any()) else None
+
+        band = test["band"]
+        out.update(obstacle_recall=share(cells, obstacle),
+                   obstacle_recall_required=None if required is None
+                   else share(cells, required & obstacle),
+                   obstacle_FPR=share(cells, ~obstacle),
+                   obstacle_FPR_determined=None if band is None
+                   else share(cells, ~obstacle & band["near"]),
+                   move_recall=share(moves, truth), move_FPR=share(moves, ~truth))
+        return out
+
+    def usable_features(self, shard) -> torch.Tensor:
+        """``[l_c]`` bool: the cost features a learner holding ``shard`` can learn at all:
+        neither its demonstrations nor P0 make them positive (budget 0)."""
+        return ~demonstrated_mask(cost_basis=self.cost_basis, model=self.model,
+                                  demonstrations=shard,
+                                  initial_distribution=self.model.initial_distribution())
+
+    def recall_bound(self, shard) -> dict[str, float | None]:
+        """The most a learner holding ``shard`` can recover with this cost basis, before
+        training: the region and required-obstacle recall of learning every
+        :meth:`usable_features` (an upper bound on both)."""
+        rates = self.region_rates(self.usable_features(shard).numpy())
+        return {"region_recall_bound": rates["region_recall"],
+                "obstacle_recall_required_bound": rates["obstacle_recall_required"]}
+
+    def check_expressive(self) -> None:
+        """Refuse a cost basis of which no held shard can learn any feature (every one
+        positive on its demonstrations or at a start state: e.g. a network ending in a
+        sigmoid, positive everywhere), naming the fix, before training."""
+        held = [s for s in self.shards if s is not None]
+        if held and not any(bool(self.usable_features(s).any()) for s in held):
+            basis = self.cost_basis
+            raise ValueError(
+                f"The cost basis {type(basis).__name__} can express no constraint: every "
+                f"one of its {basis.dim} features is positive on every learner's "
+                f"demonstrations or at a start state, and with budget 0 a feature's "
+                f"constraint set is where it is positive (paper §3), so none can be learned "
+                f"(a network ending in a sigmoid is positive everywhere). Use features with "
+                f"exact zeros: features/cost=local_relu_grid (GridLocalReLUBasis), an "
+                f"indicator basis (shared, per_expert, regions), or end your network with "
+                f"a ReLU clipped to max_value (torch.clamp(x, 0, max_value)).")
+
+    def _held(self) -> list[tuple[str, Any]]:
+        """The shards this process holds, labelled, then C-ICRL's (all of them)."""
+        held = [(f"learner {v + 1}", s) for v, s in enumerate(self.shards) if s is not None]
+        if self.demos is not None and len(self.shards) > 1:
+            held.append(("C-ICRL", self.demos))
+        return held
+
+    def expressivity(self) -> list[float]:
+        """Per held shard, then C-ICRL, the region recall bound (as ``SACTask``'s)."""
+        return [self.recall_bound(s)["region_recall_bound"] for _, s in self._held()]
+
+    def learned_mask(self, row: dict) -> np.ndarray:
+        """``[l_c]`` bool: a row's learned constraints (its ``constraints`` names)."""
+        names = list(self.cost_basis.names)
+        mask = np.zeros(len(names), dtype=bool)
+        mask[[names.index(n) for n in row.get("constraints") or ()]] = True
+        return mask
+
+    def print_expressivity(self) -> None:
+        """One line per bound: each held shard's :meth:`recall_bound` and C-ICRL's."""
+        bounds = [(who, self.recall_bound(s)) for who, s in self._held()]
+        fmt = lambda x: "N/A" if x is None else f"{x:.2f}"  # noqa: E731
+        print("the most each learned set can cover with this cost basis (upper bounds on "
+              "recall): forbidden joint states "
+              + ", ".join(f"{w} {fmt(b['region_recall_bound'])}" for w, b in bounds)
+              + "; required obstacle cells "
+              + ", ".join(f"{w} {fmt(b['obstacle_recall_required_bound'])}"
+                          for w, b in bounds), flush=True)
+
+    def predicted_cells(self, learned: Any) -> list[int]:
+        """The cells some expert's learned set forbids (for maps)."""
+        floor = predicted_cost_floor(self.region_test()["features"], learned,
+                                     self.model.n_cells) > 0
+        N, S1 = self.model.n_experts, self.model.n_cells
+        cells = torch.stack([floor.movedim(i, 0).reshape(S1, -1).all(1) for i in range(N)])
+        return torch.nonzero(cells.any(0)).flatten().tolist()
+
