@@ -165,6 +165,9 @@ def test_cell_scores_of_the_true_set_are_exact(tmp_path):
     true = task.cost_basis.true_constraints().numpy()
     r = task.region_rates(true)
     assert (r["region_recall"], r["region_precision"], r["region_iou"]) == (1.0, 1.0, 1.0)
+    assert task.required_rates(true) == {"obstacle_recall_required": 1.0}
+    assert task.required_rates(np.zeros_like(true), task.demos) == {
+        "obstacle_recall_required": 0.0, "obstacle_recall_required_bound": 1.0}
     assert (r["obstacle_recall"], r["obstacle_FPR"], r["move_recall"], r["move_FPR"]) == \
         (1.0, 0.0, 1.0, 0.0)
     empty = task.region_rates(np.zeros_like(true))
@@ -174,8 +177,8 @@ def test_cell_scores_of_the_true_set_are_exact(tmp_path):
     # the scores of learning them all, and the true constraints' recall is within it.
     usable = task.usable_features(task.demos).numpy()
     bound = task.recall_bound(task.demos)
-    assert bound["region_recall_bound"] == task.region_rates(usable)["region_recall"]
-    assert bound["region_recall_bound"] >= task.region_rates(true & usable)["region_recall"]
+    assert bound == task.region_rates(usable)["region_recall"]
+    assert bound >= task.region_rates(true & usable)["region_recall"]
 
     deep = _task(GridLocalReLUBasis, density=1.0)
     feats = deep.cost_basis()

@@ -402,7 +402,7 @@ class GridTask(GridRegionScoring, Task):
         row = ev.rollout(trainer.policy(i).policy_at)
         row.update(extra)
         row.update(ev.rates(learned), **self.region_rates(learned),
-                   **self.recall_bound(trainer.shards[i]),
+                   region_recall_bound=self.recall_bound(trainer.shards[i]),
                    RFD=reward_function_distance(trainer.state.eta_bar[i, :-1],
                                                 ev.true_reward_weights),
                    SR=None, multiplier=float(trainer.state.eta_bar[i, -1]),
@@ -487,15 +487,19 @@ class GridTask(GridRegionScoring, Task):
         return self._identifiability
 
     def annotate(self, methods: dict) -> dict | None:
-        """Adds to every learned row ``FNR_required``, the true set's class counts and
-        ``contradictions`` (learned constraints a demonstration or P0 accrues); returns
+        """Adds to every learned row ``FNR_required``, the true set's class counts,
+        ``contradictions`` (learned constraints a demonstration or P0 accrues) and the
+        required obstacles' recall and its bound (:meth:`required_rates`); returns
         ``results.json``'s ``identifiability`` record (None where it does not apply)."""
         ident = self.identifiability()
         names = list(self.cost_basis.names)
         for m in methods.values():
-            for row in m["learners"]:
+            for v, row in enumerate(m["learners"]):
                 if "constraints" not in row:  # reference rows learn nothing
                     continue
+                # D-ICRL's rows hold one shard each; C-ICRL and the baselines all of them
+                shard = self.shards[v] if len(m["learners"]) > 1 else self.demos
+                row.update(self.required_rates(self.learned_mask(row), shard))
                 if ident is None:  # no truth, or no process holds every demonstration
                     row.update(dict.fromkeys(ANNOTATIONS))
                     continue

@@ -156,15 +156,22 @@ class GridRegionScoring:
                 self._required_obstacles = ident.required[:self.model.n_cells].clone()
         return self._required_obstacles
 
+    def _cells(self, learned: Any) -> torch.Tensor:
+        """``[N, S1]`` bool: cell ``c`` is forbidden for expert ``i`` by the learned set
+        ``[l_c]`` when every joint state with ``i`` at ``c`` is."""
+        N, S1 = self.model.n_experts, self.model.n_cells
+        floor = predicted_cost_floor(self.region_test()["features"], learned, S1) > 0
+        return torch.stack([floor.movedim(i, 0).reshape(S1, -1).all(1) for i in range(N)])
+
     def region_rates(self, learned: Any) -> dict[str, float | None]:
         """The learned set ``[l_c]`` bool as a classifier of joint states
         (``region_*``, :func:`~dicrl_torch.region.region_scores`), of (expert, cell)
-        pairs (``obstacle_*``) and of moves (``move_*``); a score that needs every
-        demonstration is None in a process without them."""
+        pairs (``obstacle_*`` but the required ones: :meth:`required_rates`) and of moves
+        (``move_*``); a score that needs every demonstration is None in a process
+        without them."""
         test = self.region_test()
         feats, forbidden = test["features"], test["forbidden"]
-        N, S1 = self.model.n_experts, self.model.n_cells
-        predicted = predicted_cost_floor(feats, learned, S1) > 0
+        predicted = predicted_cost_floor(feats, learned, self.model.n_cells) > 0
         undetermined = test["undetermined"]
         scores = region_scores(forbidden.reshape(-1).numpy(), predicted.reshape(-1).numpy(),
                                np.zeros(forbidden.numel(), dtype=bool) if undetermined is None
@@ -172,27 +179,34 @@ class GridRegionScoring:
         out = {f"region_{k}": v for k, v in scores.items()}
         if undetermined is None:
             out.update(region_precision_determined=None, region_undetermined=None)
-        # Cell c is forbidden for expert i when every joint state with i at c is.
-        cells = torch.stack([predicted.movedim(i, 0).reshape(S1, -1).all(1)
-                             for i in range(N)])  # [N, S1]
+        cells = self._cells(learned)
         obstacle = torch.from_numpy(self.layout.obstacle_mask())
-        required = self.required_obstacles()
         w = torch.as_tensor(np.asarray(learned, dtype=np.float64))
         move_cost = feats.weighted(w).local  # [N, S1, A1]: the joint part reads no move
         moves = (move_cost > 0).all(1).all(0)  # [A1]
         truth = torch.from_numpy(self.layout.forbidden_action_mask())
-
-        def share(hit: torch.Tensor, where: torch.Tensor) -> float | None:
-            return float(hit[..., where].float().mean()) if bool(where.any()) else None
-
         band = test["band"]
-        out.update(obstacle_recall=share(cells, obstacle),
-                   obstacle_recall_required=None if required is None
-                   else share(cells, required & obstacle),
-                   obstacle_FPR=share(cells, ~obstacle),
+        out.update(obstacle_recall=_share(cells, obstacle),
+                   obstacle_FPR=_share(cells, ~obstacle),
                    obstacle_FPR_determined=None if band is None
-                   else share(cells, ~obstacle & band["near"]),
-                   move_recall=share(moves, truth), move_FPR=share(moves, ~truth))
+                   else _share(cells, ~obstacle & band["near"]),
+                   move_recall=_share(moves, truth), move_FPR=_share(moves, ~truth))
+        return out
+
+    def required_rates(self, learned: Any, shard: Any = None) -> dict[str, float | None]:
+        """``obstacle_recall_required`` of the learned set ``[l_c]`` bool and, given the
+        learner's ``shard``, ``obstacle_recall_required_bound`` (learning every feature
+        it leaves unused): the recall over :meth:`required_obstacles`, asked once per run
+        by the process that annotates the rows (one solve per undemonstrated obstacle:
+        minutes at 3 experts, not repeated in every learner process)."""
+        required = self.required_obstacles()
+        where = None if required is None else \
+            required & torch.from_numpy(self.layout.obstacle_mask())
+        out = {"obstacle_recall_required": None if where is None
+               else _share(self._cells(learned), where)}
+        if shard is not None:
+            out["obstacle_recall_required_bound"] = None if where is None else _share(
+                self._cells(self.usable_features(shard).numpy()), where)
         return out
 
     def usable_features(self, shard) -> torch.Tensor:
@@ -202,13 +216,11 @@ class GridRegionScoring:
                                   demonstrations=shard,
                                   initial_distribution=self.model.initial_distribution())
 
-    def recall_bound(self, shard) -> dict[str, float | None]:
-        """The most a learner holding ``shard`` can recover with this cost basis, before
-        training: the region and required-obstacle recall of learning every
-        :meth:`usable_features` (an upper bound on both)."""
-        rates = self.region_rates(self.usable_features(shard).numpy())
-        return {"region_recall_bound": rates["region_recall"],
-                "obstacle_recall_required_bound": rates["obstacle_recall_required"]}
+    def recall_bound(self, shard) -> float:
+        """The most of the forbidden joint states a learner holding ``shard`` can recover
+        with this cost basis, before training: the region recall of learning every
+        :meth:`usable_features` (an upper bound)."""
+        return self.region_rates(self.usable_features(shard).numpy())["region_recall"]
 
     def check_expressive(self) -> None:
         """Refuse a cost basis of which no held shard can learn any feature (every one
@@ -236,7 +248,7 @@ class GridRegionScoring:
 
     def expressivity(self) -> list[float]:
         """Per held shard, then C-ICRL, the region recall bound (as ``SACTask``'s)."""
-        return [self.recall_bound(s)["region_recall_bound"] for _, s in self._held()]
+        return [self.recall_bound(s) for _, s in self._held()]
 
     def learned_mask(self, row: dict) -> np.ndarray:
         """``[l_c]`` bool: a row's learned constraints (its ``constraints`` names)."""
@@ -246,21 +258,17 @@ class GridRegionScoring:
         return mask
 
     def print_expressivity(self) -> None:
-        """One line per bound: each held shard's :meth:`recall_bound` and C-ICRL's."""
-        bounds = [(who, self.recall_bound(s)) for who, s in self._held()]
-        fmt = lambda x: "N/A" if x is None else f"{x:.2f}"  # noqa: E731
-        print("the most each learned set can cover with this cost basis (upper bounds on "
-              "recall): forbidden joint states "
-              + ", ".join(f"{w} {fmt(b['region_recall_bound'])}" for w, b in bounds)
-              + "; required obstacle cells "
-              + ", ".join(f"{w} {fmt(b['obstacle_recall_required_bound'])}"
-                          for w, b in bounds), flush=True)
+        """One line: each held shard's :meth:`recall_bound`, then C-ICRL's."""
+        print("the most of the forbidden joint states each learned set can cover with this "
+              "cost basis (an upper bound on region recall): "
+              + ", ".join(f"{who} {self.recall_bound(s):.2f}" for who, s in self._held()),
+              flush=True)
 
     def predicted_cells(self, learned: Any) -> list[int]:
         """The cells some expert's learned set forbids (for maps)."""
-        floor = predicted_cost_floor(self.region_test()["features"], learned,
-                                     self.model.n_cells) > 0
-        N, S1 = self.model.n_experts, self.model.n_cells
-        cells = torch.stack([floor.movedim(i, 0).reshape(S1, -1).all(1) for i in range(N)])
-        return torch.nonzero(cells.any(0)).flatten().tolist()
+        return torch.nonzero(self._cells(learned).any(0)).flatten().tolist()
 
+
+def _share(hit: torch.Tensor, where: torch.Tensor) -> float | None:
+    """The share of ``where`` (the last dimension of ``hit``) that ``hit`` marks."""
+    return float(hit[..., where].float().mean()) if bool(where.any()) else None
