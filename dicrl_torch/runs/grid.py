@@ -58,9 +58,12 @@ from dicrl_torch.runs.settings import GRID_BASELINES, GridSettings, with_default
 from dicrl_torch.runs.task import Rollouts, Task
 from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 
-# What GridTask.annotate adds to every learned row (null where it cannot be computed).
-ANNOTATIONS = ("FNR_required", "n_demonstrated", "n_required", "n_undetermined",
-               "contradictions")
+# What GridTask.annotate adds to every learned row (null where it cannot be computed): the
+# identifiability of the basis' true constraints, and the required obstacles' recall.
+IDENTIFIABILITY_KEYS = ("FNR_required", "n_demonstrated", "n_required", "n_undetermined",
+                        "contradictions")
+ANNOTATIONS = (*IDENTIFIABILITY_KEYS, "obstacle_recall_required",
+               "obstacle_recall_required_bound")
 
 
 def constraint_names(names: Sequence[str], learned) -> list[str]:
@@ -499,9 +502,10 @@ class GridTask(GridRegionScoring, Task):
                     continue
                 # D-ICRL's rows hold one shard each; C-ICRL and the baselines all of them
                 shard = self.shards[v] if len(m["learners"]) > 1 else self.demos
-                row.update(self.required_rates(self.learned_mask(row), shard))
+                row.update({"obstacle_recall_required_bound": None,
+                            **self.required_rates(self.learned_mask(row), shard)})
                 if ident is None:  # no truth, or no process holds every demonstration
-                    row.update(dict.fromkeys(ANNOTATIONS))
+                    row.update(dict.fromkeys(IDENTIFIABILITY_KEYS))
                     continue
                 learned = torch.zeros(len(names), dtype=torch.bool)
                 learned[[names.index(n) for n in row["constraints"]]] = True

@@ -38,8 +38,11 @@ def scores(run: Path) -> list[dict]:
             if row.get("constraints") is None:
                 continue
             bound = bounds[-1] if len(method["learners"]) == 1 else bounds[v]
+            mask = task.learned_mask(row)
+            # the grid's recall over the obstacles its demonstrations make required
+            required = task.required_rates(mask) if hasattr(task, "required_rates") else {}
             out.append({"run": str(run), "seed": cfg.seed, "method": name, "learner": v + 1,
-                        **task.region_rates(task.learned_mask(row)),
+                        **task.region_rates(mask), **required,
                         "region_recall_bound": bound, "SR": row.get("SR"),
                         "CR": row.get("CR_mean"), "CVR": row.get("CVR"),
                         "n_learned": row.get("n_learned")})
