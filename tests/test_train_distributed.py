@@ -79,14 +79,18 @@ def assert_same_results(run_dir: Path, reference: Path) -> None:
 
 def assert_unclassified(got: dict, want: dict) -> None:
     """No process of a run on private shard files holds every demonstration, so the
-    identifiability of the true set (an evaluation on the pooled data) is not computed:
-    its fields are null in ``got``; they are dropped from both for the comparison."""
+    identifiability of the true set and the region scores that set undetermined states
+    apart (evaluations on the pooled data) are not computed: their fields are null in
+    ``got``; they are dropped from both for the comparison."""
     from dicrl_torch.runs.grid import ANNOTATIONS
+    from dicrl_torch.runs.grid_regions import POOLED_SCORES
 
     assert got.get("identifiability") is None and want["identifiability"] is not None
     for res, computed in ((got, False), (want, True)):
         for row in res["methods"]["D-ICRL"]["learners"]:
             assert (row["FNR_required"] is not None) == computed
+            for key in POOLED_SCORES:
+                assert (row.pop(key) is not None) == computed, key
             for key in ANNOTATIONS:
                 row.pop(key)
 

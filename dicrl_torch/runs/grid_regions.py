@@ -36,7 +36,13 @@ from dicrl_torch.envs.grid import GridLayout
 from dicrl_torch.features.bases import FactoredFeatures, SharedIndicatorCostBasis
 from dicrl_torch.region import region_scores
 
-__all__ = ["GridRegionScoring", "grid_forbidden", "grid_undetermined", "predicted_cost_floor"]
+__all__ = ["POOLED_SCORES", "GridRegionScoring", "grid_forbidden", "grid_undetermined",
+           "predicted_cost_floor"]
+
+POOLED_SCORES = ("region_precision_determined", "region_undetermined",
+                 "obstacle_FPR_determined")
+"""The scores that set undetermined states apart: the band comes from every
+demonstration, so a process without them (torchrun on private files) reports them null."""
 
 
 def _joint_grid(tables: list[torch.Tensor], n_cells: int) -> torch.Tensor:
