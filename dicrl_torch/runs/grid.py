@@ -66,6 +66,9 @@ ANNOTATIONS = (*IDENTIFIABILITY_KEYS, "obstacle_recall_required",
                "obstacle_recall_required_bound")
 
 
+_SHORT = {"region_recall": "R_rec", "obstacle_FPR": "O_FPR"}  # as the printed table
+
+
 def constraint_names(names: Sequence[str], learned) -> list[str]:
     """Names of the features in the learned mask ``[d]`` bool (tensor or array): kept in
     the table rows, so that the figures of a distributed run, drawn by one process, know
@@ -562,8 +565,12 @@ class GridTask(GridRegionScoring, Task):
                             if not constraint_cells(self.layout, [n], regions)]
                 listed = ", ".join(off_grid[:4]) + (f" and {len(off_grid) - 4} more"
                                                     if len(off_grid) > 4 else "")
-                rates = ", ".join(f"{k} {'N/A' if row[k] is None else format(row[k], '.2f')}"
-                                  for k in ("FPR", "FNR"))
+                # a basis without per-feature truth is scored as regions (§6.1)
+                keys = ("FPR", "FNR") if row.get("FPR") is not None or "obstacle_FPR" not in row \
+                    else ("region_recall", "obstacle_FPR")
+                rates = ", ".join(f"{_SHORT.get(k, k)} "
+                                  f"{'N/A' if row.get(k) is None else format(row[k], '.2f')}"
+                                  for k in keys)
                 panels.append(visitation_heatmap(
                     self.layout, visits,
                     constraint_cells=constraint_cells(self.layout, row["constraints"], regions),
