@@ -129,11 +129,11 @@ def test_the_cost_floor_is_the_dense_minimum_over_joint_actions(n_experts):
 
 def test_the_truth_is_obstacles_and_collisions():
     model = _model(size=3, n_experts=2, obstacles=((1, 1),))
-    truth = grid_forbidden(model.layout, 2)
+    truth = grid_forbidden(model)
     for s1, s2 in itertools.product(range(9), repeat=2):
         assert bool(truth[s1, s2]) == (s1 == 4 or s2 == 4 or s1 == s2)
     free = _model(size=3, n_experts=2, obstacles=((1, 1),), collision=False)
-    assert not grid_forbidden(free.layout, 2)[0, 0]
+    assert not grid_forbidden(free)[0, 0]
 
 
 def test_undetermined_states_come_from_the_demonstrations():
@@ -145,7 +145,7 @@ def test_undetermined_states_come_from_the_demonstrations():
     states = np.array([[[layout.cell((0, 0)), layout.cell((2, 0))],
                         [layout.cell((1, 0)), layout.cell((3, 0))],
                         [layout.cell((2, 0)), layout.cell((4, 0))]]])  # [1, 3, 2]
-    free = ~grid_forbidden(layout, 2)
+    free = ~grid_forbidden(model)
     und, band = grid_undetermined(layout, free, states)
     assert (band["step"], band["min_separation"]) == (1, 2)
     assert band["near"].tolist() == [y <= 1 for y in range(5) for _ in range(5)]

@@ -317,7 +317,7 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
     masks = AllButOne(features, unseen, pos, model)
     chain = Chain(model, solver.device)
     solve = (candidate_solver(solver) if temperature == 0.0 else solver).solve
-    overlaps = pos.overlaps() & unseen[None, :] if open_overlaps else None
+    overlaps = pos.overlaps() if open_overlaps else None
 
     def accrual(j: int, rivals: torch.Tensor | None = None) -> float | None:
         """P(experts accrue φ_j) with U \\ {j} forbidden (``open_overlaps``: outside
@@ -344,10 +344,9 @@ def classify_features(*, solver: FactoredSoftBellman, reward: FactoredReward,
         # forbidden inside its support too, narrowest first: kept only if still
         # accrued, i.e. if it forbids more than the narrower ones do.
         required = unseen & scope & (probability >= min_probability)
-        width = pos.local.flatten(0, 2).sum(0) + (
-            torch.zeros(features.dim, dtype=torch.long) if pos.joint is None else
-            torch.zeros(features.dim, dtype=torch.long).index_add(
-                0, features.joint_columns, pos.joint.sum(0)))
+        width = pos.local.flatten(0, 2).sum(0)  # pairs (and joint states) where positive
+        if pos.joint is not None:
+            width = width.index_add(0, features.joint_columns, pos.joint.sum(0))
         for j in sorted(torch.nonzero(required).flatten().tolist(),
                         key=lambda k: (int(width[k]), k)):
             rivals = overlaps[j] & required & (width < width[j])

@@ -492,12 +492,6 @@ class SACTask(RegionScoring, Task):
                 "n_learned": int(mask.sum()), "constraints": names,
                 **self.region_rates(mask)}
 
-    def learned_mask(self, row: dict) -> np.ndarray:
-        """``[l_c]`` bool: a row's learned constraints (its ``constraints`` names)."""
-        mask = np.zeros(self.cost_basis.dim, dtype=bool)
-        mask[[self.cost_basis.names.index(n) for n in row.get("constraints") or ()]] = True
-        return mask
-
     def outer_metrics(self, trainer: DICRL, rollouts: bool) -> dict[str, list]:
         """FPR and FNR of each local learner's ``ω_c >= threshold`` (no rollouts: a
         true-game evaluation of SAC is a table-row affair)."""

@@ -53,7 +53,7 @@ from dicrl_torch.metrics import (
     true_constraints_of,
 )
 from dicrl_torch.runs.grid_regions import GridRegionScoring
-from dicrl_torch.runs.results import REGION_COLUMNS
+from dicrl_torch.runs.results import REGION_COLUMNS, column_header
 from dicrl_torch.runs.settings import GRID_BASELINES, GridSettings, with_defaults
 from dicrl_torch.runs.task import Rollouts, Task
 from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
@@ -64,9 +64,6 @@ IDENTIFIABILITY_KEYS = ("FNR_required", "n_demonstrated", "n_required", "n_undet
                         "contradictions")
 ANNOTATIONS = (*IDENTIFIABILITY_KEYS, "obstacle_recall_required",
                "obstacle_recall_required_bound")
-
-
-_SHORT = {"region_recall": "R_rec", "obstacle_FPR": "O_FPR"}  # as the printed table
 
 
 def constraint_names(names: Sequence[str], learned) -> list[str]:
@@ -498,7 +495,6 @@ class GridTask(GridRegionScoring, Task):
         required obstacles' recall and its bound (:meth:`required_rates`); returns
         ``results.json``'s ``identifiability`` record (None where it does not apply)."""
         ident = self.identifiability()
-        names = list(self.cost_basis.names)
         for m in methods.values():
             for v, row in enumerate(m["learners"]):
                 if "constraints" not in row:  # reference rows learn nothing
@@ -510,8 +506,7 @@ class GridTask(GridRegionScoring, Task):
                 if ident is None:  # no truth, or no process holds every demonstration
                     row.update(dict.fromkeys(IDENTIFIABILITY_KEYS))
                     continue
-                learned = torch.zeros(len(names), dtype=torch.bool)
-                learned[[names.index(n) for n in row["constraints"]]] = True
+                learned = torch.from_numpy(self.learned_mask(row))
                 row.update(FNR_required=fnr_required(
                                learned, torch.as_tensor(self.evaluation.true_constraints),
                                ident),
@@ -568,7 +563,7 @@ class GridTask(GridRegionScoring, Task):
                 # a basis without per-feature truth is scored as regions (§6.1)
                 keys = ("FPR", "FNR") if row.get("FPR") is not None or "obstacle_FPR" not in row \
                     else ("region_recall", "obstacle_FPR")
-                rates = ", ".join(f"{_SHORT.get(k, k)} "
+                rates = ", ".join(f"{column_header(k)} "
                                   f"{'N/A' if row.get(k) is None else format(row[k], '.2f')}"
                                   for k in keys)
                 panels.append(visitation_heatmap(

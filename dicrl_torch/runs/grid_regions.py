@@ -32,8 +32,12 @@ import numpy as np
 import torch
 
 from dicrl_torch.algos.identifiability import classify_features, demonstrated_mask
-from dicrl_torch.envs.grid import GridLayout
-from dicrl_torch.features.bases import FactoredFeatures, SharedIndicatorCostBasis
+from dicrl_torch.envs.grid import GridLayout, TabularGridModel
+from dicrl_torch.features.bases import (
+    FactoredFeatures,
+    SharedIndicatorCostBasis,
+    _collision_table,
+)
 from dicrl_torch.region import region_scores
 
 __all__ = ["POOLED_SCORES", "GridRegionScoring", "grid_forbidden", "grid_undetermined",
@@ -69,17 +73,14 @@ def predicted_cost_floor(features: FactoredFeatures, learned: Any, n_cells: int
     return floor
 
 
-def grid_forbidden(layout: GridLayout, n_experts: int) -> torch.Tensor:
-    """``[S1]*N`` bool: the joint states a true constraint forbids (an expert on an
-    obstacle; two in one cell where the layout forbids collisions)."""
-    S1 = layout.n_cells
+def grid_forbidden(model: TabularGridModel) -> torch.Tensor:
+    """``[S1]*N`` bool: the joint states a true constraint of ``model.layout`` forbids (an
+    expert on an obstacle; two in one cell where the layout forbids collisions)."""
+    layout, N = model.layout, model.n_experts
     obstacle = torch.from_numpy(layout.obstacle_mask()).to(torch.float64)
-    out = _joint_grid([obstacle] * n_experts, S1) > 0
-    if layout.collision_constraint and n_experts > 1:
-        cells = torch.meshgrid(*[torch.arange(S1)] * n_experts, indexing="ij")
-        for i in range(n_experts):
-            for j in range(i + 1, n_experts):
-                out |= cells[i] == cells[j]
+    out = _joint_grid([obstacle] * N, layout.n_cells) > 0
+    if layout.collision_constraint:
+        out |= (_collision_table(model) > 0).reshape(out.shape)
     return out
 
 
@@ -133,7 +134,7 @@ class GridRegionScoring:
         states and the band (None when this process does not hold every demonstration:
         a learner of a distributed run on its own file), and the cost ``features``."""
         if not hasattr(self, "_region_test"):
-            forbidden = grid_forbidden(self.layout, self.model.n_experts)
+            forbidden = grid_forbidden(self.model)
             undetermined, band = (None, None) if self.demos is None else \
                 grid_undetermined(self.layout, ~forbidden, self.demos.states)
             self._region_test = {"forbidden": forbidden, "undetermined": undetermined,
@@ -165,9 +166,12 @@ class GridRegionScoring:
     def _cells(self, learned: Any) -> torch.Tensor:
         """``[N, S1]`` bool: cell ``c`` is forbidden for expert ``i`` by the learned set
         ``[l_c]`` when every joint state with ``i`` at ``c`` is."""
-        N, S1 = self.model.n_experts, self.model.n_cells
-        floor = predicted_cost_floor(self.region_test()["features"], learned, S1) > 0
-        return torch.stack([floor.movedim(i, 0).reshape(S1, -1).all(1) for i in range(N)])
+        return _cells_of(self._predicted(learned))
+
+    def _predicted(self, learned: Any) -> torch.Tensor:
+        """``[S1]*N`` bool: the joint states the learned set ``[l_c]`` forbids."""
+        return predicted_cost_floor(self.region_test()["features"], learned,
+                                    self.model.n_cells) > 0
 
     def region_rates(self, learned: Any) -> dict[str, float | None]:
         """The learned set ``[l_c]`` bool as a classifier of joint states
@@ -177,7 +181,7 @@ class GridRegionScoring:
         without them."""
         test = self.region_test()
         feats, forbidden = test["features"], test["forbidden"]
-        predicted = predicted_cost_floor(feats, learned, self.model.n_cells) > 0
+        predicted = self._predicted(learned)
         undetermined = test["undetermined"]
         scores = region_scores(forbidden.reshape(-1).numpy(), predicted.reshape(-1).numpy(),
                                np.zeros(forbidden.numel(), dtype=bool) if undetermined is None
@@ -185,7 +189,7 @@ class GridRegionScoring:
         out = {f"region_{k}": v for k, v in scores.items()}
         if undetermined is None:
             out.update(region_precision_determined=None, region_undetermined=None)
-        cells = self._cells(learned)
+        cells = _cells_of(predicted)
         obstacle = torch.from_numpy(self.layout.obstacle_mask())
         w = torch.as_tensor(np.asarray(learned, dtype=np.float64))
         move_cost = feats.weighted(w).local  # [N, S1, A1]: the joint part reads no move
@@ -256,13 +260,6 @@ class GridRegionScoring:
         """Per held shard, then C-ICRL, the region recall bound (as ``SACTask``'s)."""
         return [self.recall_bound(s) for _, s in self._held()]
 
-    def learned_mask(self, row: dict) -> np.ndarray:
-        """``[l_c]`` bool: a row's learned constraints (its ``constraints`` names)."""
-        names = list(self.cost_basis.names)
-        mask = np.zeros(len(names), dtype=bool)
-        mask[[names.index(n) for n in row.get("constraints") or ()]] = True
-        return mask
-
     def print_expressivity(self) -> None:
         """One line: each held shard's :meth:`recall_bound`, then C-ICRL's."""
         print("the most of the forbidden joint states each learned set can cover with this "
@@ -273,6 +270,14 @@ class GridRegionScoring:
     def predicted_cells(self, learned: Any) -> list[int]:
         """The cells some expert's learned set forbids (for maps)."""
         return torch.nonzero(self._cells(learned).any(0)).flatten().tolist()
+
+
+def _cells_of(predicted: torch.Tensor) -> torch.Tensor:
+    """``[N, S1]`` bool from predicted joint states ``[S1]*N``: expert ``i``'s cell ``c``
+    where every joint state with ``i`` at ``c`` is predicted."""
+    S1 = predicted.shape[0]
+    return torch.stack([predicted.movedim(i, 0).reshape(S1, -1).all(1)
+                        for i in range(predicted.ndim)])
 
 
 def _share(hit: torch.Tensor, where: torch.Tensor) -> float | None:

@@ -72,13 +72,18 @@ OBSTACLE_COLUMNS = ("obstacle_recall", "obstacle_recall_required", "obstacle_FPR
                     "obstacle_FPR_determined", "move_recall", "move_FPR")
 
 
+def column_header(key: str) -> str:
+    """A row key as the printed table heads it (``region_recall`` -> ``R_rec``)."""
+    return _HEADERS.get(key, key)
+
+
 def print_table(methods: dict, columns: Sequence[str] = TABLE1_COLUMNS) -> None:
     """Print ``methods`` (``{name: {"D", "NATR", "learners": [row, ...]}}``) in the paper's
     layout: one line per learner, a metric that does not apply as N/A."""
     fmt = lambda x, f: "N/A" if x is None else format(x, f)  # noqa: E731
     head = f"{'':26s}{'D':>3s}{'NATR':>6s}"
     for c in columns:
-        head += f"{'CR':>20s}" if c == "CR" else f"{_HEADERS.get(c, c):>{_FORMATS[c][0]}s}"
+        head += f"{'CR':>20s}" if c == "CR" else f"{column_header(c):>{_FORMATS[c][0]}s}"
     print(head)
     for name, m in methods.items():
         for j, r in enumerate(m["learners"]):

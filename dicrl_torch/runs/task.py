@@ -39,13 +39,22 @@ class Task(ABC):
         split: trajectories per learner (public: it scales the steps).
         shards: each learner's demonstrations (None for another process's learner).
         demos: every learner's demonstrations pooled (C-ICRL's and the baselines' data).
+        cost_basis: the learners' cost basis (its ``names`` label a row's constraints).
         columns: the metric columns of the printed table.
     """
 
     split: list[int]
     shards: list[Any]
     demos: Any
+    cost_basis: Any
     columns: tuple[str, ...]
+
+    def learned_mask(self, row: dict) -> np.ndarray:
+        """``[l_c]`` bool: a row's learned constraints (its ``constraints`` names)."""
+        names = list(self.cost_basis.names)
+        mask = np.zeros(len(names), dtype=bool)
+        mask[[names.index(n) for n in row.get("constraints") or ()]] = True
+        return mask
 
     # ------------------------------------------------------------------ required
     @abstractmethod
