@@ -74,7 +74,7 @@ RUN_KEYS = {"outer_iterations": "algo.outer_iterations", "eval_every": "eval_eve
             "run_d_icrl": "algo.run_d_icrl", "run_c_icrl": "algo.run_c_icrl"}
 TRAINER_KEYS = {k: f"algo.{k}" for k in (
     "inner_steps", "inner_step", "lsca_curvature", "prune_accrued", "init_cost_weights",
-    "init_reward_weights", "init_multiplier", "inner_method")}
+    "init_reward_weights", "init_multiplier", "inner_method", "merge_stateful_inner")}
 OTHER_KEYS = ("name", "n_demonstrations", "shard_files", "algo.c_icrl_beside_learners",
               "env", "features.reward", "features.cost", "solver.solver", "algo.steps",
               "graph.inner", "graph.outer", "comm", "logger")

@@ -10,6 +10,8 @@ import torch
 
 from dicrl_torch.algos.callbacks import InnerScalars, TrainerCallback
 from dicrl_torch.algos.dicrl import DICRL, StepSizes
+from dicrl_torch.algos.models import TabularLearnerModel
+from dicrl_torch.checks import InvalidSetting
 from dicrl_torch.comm import (
     ALLOWED_FIELDS,
     CompleteSchedule,
@@ -79,6 +81,56 @@ def test_merging_identical_inner_processes_changes_nothing(setup):
     assert torch.equal(merged.state.eta_bar, separate.state.eta_bar)
     assert torch.equal(merged.state.tracker, separate.state.tracker)
     assert merged.solves < separate.solves
+
+
+class _CountingStatefulModel(TabularLearnerModel):
+    """The exact tabular model flagged stateful (as SAC's), counting its solves: its
+    numbers do not depend on its state, so merged and unmerged runs must agree."""
+
+    stateful = True
+
+    def __init__(self, **kw) -> None:
+        super().__init__(**kw)
+        self.calls = 0
+
+    def solve(self, learner, eta, cost_weights):
+        self.calls += 1
+        return super().solve(learner, eta, cost_weights)
+
+    def state_dict(self) -> dict:
+        return {"calls": self.calls}
+
+    def load_state_dict(self, sd: dict) -> None:
+        self.calls = sd["calls"]
+
+
+def test_a_stateful_model_runs_one_inner_process_per_equal_cost_only_when_asked(setup):
+    """With equal ω_c (a complete outer graph), Algorithm 1's N_L inner processes are one
+    problem: merged, each learner solves K - 1 times per process and once for its LGA
+    (C-ICRL's count), with the numbers of the exact solver's merged run; unmerged (the
+    default for a stateful model), every learner solves in all N_L processes."""
+    solver, rb, cb, _ = setup
+    n, K, outer = len(SPLIT), 3, 3
+    runs = {}
+    for merge in (False, True):
+        model = _CountingStatefulModel(solver=solver, reward_basis=rb, cost_basis=cb)
+        runs[merge] = make(setup, init_cost=0.3, learner_model=model,
+                           merge_stateful_inner=merge)
+        runs[merge].train(outer)
+    assert [h["inner_processes"] for h in runs[False].history] == [n] * outer
+    assert [h["inner_processes"] for h in runs[True].history] == [1] * outer
+    assert runs[False].learner_model.calls == outer * n * (n * (K - 1) + 1)
+    assert runs[True].learner_model.calls == outer * n * ((K - 1) + 1)
+    exact = make(setup, init_cost=0.3)  # stateless: merged by default, bit-identical
+    exact.train(outer)
+    for field in ("cost_weights", "eta_bar", "tracker"):
+        assert torch.equal(getattr(runs[True].state, field), getattr(exact.state, field))
+        assert torch.equal(getattr(runs[False].state, field), getattr(exact.state, field))
+    # the two settings train a real stateful model differently: one refuses the other's
+    with pytest.raises(ValueError, match="differently configured trainer"):
+        runs[False].load_state_dict(runs[True].state_dict())
+    with pytest.raises(InvalidSetting, match="merge_stateful_inner"):
+        make(setup, merge_stateful_inner="yes")
 
 
 def test_c_icrl_is_one_learner(setup):

@@ -39,7 +39,8 @@ def make_trainer(tiny, *, shards=None, communicator=None, init_cost=None, inner=
         init_cost = torch.linspace(0.2, 0.4, n, dtype=torch.float64).unsqueeze(1).expand(
             n, cb.dim).clone()
     settings = dict(steps=StepSizes(alpha_bar=0.02), inner_steps=3, lsca_curvature=10.0)
-    return DICRL(solver=solver, reward_basis=rb, cost_basis=cb,
+    model = {} if "learner_model" in kw else dict(solver=solver, reward_basis=rb, cost_basis=cb)
+    return DICRL(**model,
                  shards=all_shards if shards is None else shards,
                  trajectory_counts=SPLIT,
                  communicator=communicator or SimulatedCommunicator(n),

@@ -108,6 +108,7 @@ _OPTION_RULES: dict[str, Callable[[Any], Any]] = {
     "lsca_curvature": lambda v: setting_number("lsca_curvature", v, low=0, low_open=True,
                                                example=300.0, why="ρ of the LSCA step"),
     "prune_accrued": lambda v: setting_bool("prune_accrued", v),
+    "merge_stateful_inner": lambda v: setting_bool("merge_stateful_inner", v),
     "inner_method": lambda v: setting_choice("inner_method", v,
                                              ("paper", "gradient_tracking")),
     "inner_step": lambda v: setting_number(
@@ -181,7 +182,14 @@ class DICRL:
             are the same either way; tested). Only exact for a stateless learner model:
             a stateful one (SAC, ``learner_model.stateful``) trains its solvers inside
             every inner process, so merging would silently skip training updates, and
-            it is never merged.
+            it is merged only with ``merge_stateful_inner``.
+        merge_stateful_inner: with a stateful learner model, also run one inner process
+            for learners whose ω_c are equal and whose η start from one shared process.
+            Algorithm 1's inner processes for equal ω_c are one problem; unmerged, each
+            learner's SAC trains through all N_L of them, N_L (K - 1) solves per outer
+            iteration where K - 1 solve the problem (C-ICRL's count). Fewer SAC updates,
+            so other numbers than unmerged; the decision uses public values only, so
+            every backend merges alike.
         inner_method: ``"paper"`` (Algorithm 2) or ``"gradient_tracking"`` (constant
             ``inner_step``, see the module docstring).
         callbacks: :class:`~dicrl_torch.algos.callbacks.TrainerCallback` s called during
@@ -207,12 +215,14 @@ class DICRL:
                  init_cost_weights: float | torch.Tensor = 0.5,
                  init_reward_weights: float | torch.Tensor = 0.0,
                  init_multiplier: float = -1.0, progress: bool = False,
-                 merge_identical_inner: bool = True, inner_method: str = "paper",
+                 merge_identical_inner: bool = True, merge_stateful_inner: bool = False,
+                 inner_method: str = "paper",
                  inner_step: float = 0.01,
                  callbacks: Sequence[TrainerCallback] = ()) -> None:
         check_trainer_options(
             inner_steps=inner_steps, lsca_curvature=lsca_curvature,
             prune_accrued=prune_accrued, inner_method=inner_method, inner_step=inner_step,
+            merge_stateful_inner=merge_stateful_inner,
             init_cost_weights=init_cost_weights, init_reward_weights=init_reward_weights,
             init_multiplier=init_multiplier)
         self.comm = communicator
@@ -254,7 +264,10 @@ class DICRL:
         self.steps, self.K = steps, inner_steps
         self.rho, self.prune_accrued = float(lsca_curvature), prune_accrued
         self.progress = progress
-        self.merge = merge_identical_inner and not getattr(learner_model, "stateful", False)
+        stateful = getattr(learner_model, "stateful", False)
+        self.merge = merge_identical_inner and (merge_stateful_inner or not stateful)
+        # A stateful model's merged run trains other policies: not resumable as unmerged.
+        self._merged_stateful = bool(stateful and self.merge)
         self.n_learners, self.local = N_L, local
         d, lr = learner_model.cost_dim, learner_model.reward_dim
         self.accrued = torch.stack([s.cost_accrual > 0 for s in self.stats])  # [n, d]
@@ -408,9 +421,10 @@ class DICRL:
         return eta, eta
 
     def _inner_groups(self, cost_all: torch.Tensor, previous: list[list[int]]) -> list[list[int]]:
-        """Learners whose inner processes are bit-identical computations: equal ω_c and
-        warm-started from one shared process (or all from the initial η). Decided from
-        globally known values only, so every process of a distributed run agrees."""
+        """Learners whose inner processes solve one problem: equal ω_c and warm-started
+        from one shared process (or all from the initial η); for a stateless model
+        bit-identical computations. Decided from globally known values only, so every
+        process of a distributed run agrees."""
         n = self.state.outer_iteration
         owner = {u: i for i, g in enumerate(previous) for u in g} if n > 0 else {}
         groups: list[list[int]] = []
@@ -602,6 +616,7 @@ class DICRL:
                 f"K={self.K} steps={self.steps} rho={self.rho} prune={self.prune_accrued} "
                 f"inner={self.inner_method}:{self.inner_step} "
                 f"m={self.m.tolist()} {lm.describe()}"
+                + (" merged-stateful-inner" if self._merged_stateful else "")
                 + (f" {comm}" if (comm := getattr(self.comm, "describe", lambda: "")()) else ""))
 
     # ------------------------------------------------------------------ outputs

@@ -82,7 +82,7 @@ its start region; ``task_kwargs={"start_states": None}``: none)."""
 DICRL_DEFAULTS: Mapping[str, Any] = MappingProxyType(dict(
     inner_steps=3, lsca_curvature=10.0, prune_accrued=True, init_reward_weights=1.0,
     init_multiplier=-5.0, init_cost_weights=0.0, inner_method="paper", inner_step=0.005,
-    steps=MappingProxyType(dict(alpha_bar=0.002, beta_bar=0.5, beta_power=0.65,
+    merge_stateful_inner=True, steps=MappingProxyType(dict(alpha_bar=0.002, beta_bar=0.5, beta_power=0.65,
                                 multiplier_scale=10.0)),
     schedules=None))
 """The D-ICRL trainer's settings (``dicrl_kwargs`` overrides them):
@@ -284,7 +284,8 @@ def fit(
         schedules=schedules, steps=steps, inner_step=float(algo["inner_step"]),
         n_shards=len(split),
         options=dict(inner_steps=algo["inner_steps"], lsca_curvature=algo["lsca_curvature"],
-                     prune_accrued=algo["prune_accrued"], inner_method=algo["inner_method"]))
+                     prune_accrued=algo["prune_accrued"], inner_method=algo["inner_method"],
+                     merge_stateful_inner=algo["merge_stateful_inner"]))
     name = out.resolve().name if experiment is None else str(experiment)
     config = _run_config(name=name, seed=seed, split=split, demos=demos,
                          env=(make_env, solver.spec),
