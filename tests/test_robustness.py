@@ -92,6 +92,7 @@ def test_every_shipped_config_passes_the_checks(group, option):
     ("algo.prune_min_gain=-1", "algo.prune_min_gain", "null"),
     ("algo.inner_method=newton", "algo.inner_method", "gradient_tracking"),
     ("algo.run_c_icrl=maybe", "algo.run_c_icrl", "true or false"),
+    ("algo.merge_stateful_inner=maybe", "algo.merge_stateful_inner", "true or false"),
     ("eval_episodes=0", "eval_episodes", "int >= 1"),
     ("checkpoint_every=0", "checkpoint_every", "int >= 1"),
     ("seed=-1", "seed", "int >= 0"),
@@ -108,6 +109,13 @@ def test_out_of_range_values_are_refused_naming_key_and_fix(override, key, must)
     assert f"{key}=" in msg and must in msg and f"set e.g. {key}=" in msg, msg
     assert value.lower() in msg.lower(), msg
     assert "1 problem(s)" in msg  # only the bad key is reported
+
+
+def test_merge_stateful_inner_reaches_the_trainer():
+    """The config's key is a trainer option (off by default: it changes SAC's numbers)."""
+    assert common.trainer_spec(compose_train()).kwargs(2)["merge_stateful_inner"] is False
+    spec = common.trainer_spec(compose_train("algo.merge_stateful_inner=true"))
+    assert spec.kwargs(2)["merge_stateful_inner"] is True
 
 
 @pytest.mark.parametrize("split,match", [

@@ -82,7 +82,7 @@ its start region; ``task_kwargs={"start_states": None}``: none)."""
 DICRL_DEFAULTS: Mapping[str, Any] = MappingProxyType(dict(
     inner_steps=3, lsca_curvature=10.0, prune_accrued=True, init_reward_weights=1.0,
     init_multiplier=-5.0, init_cost_weights=0.0, inner_method="paper", inner_step=0.005,
-    merge_stateful_inner=True,
+    merge_stateful_inner=False,
     steps=MappingProxyType(dict(alpha_bar=0.002, beta_bar=0.5, beta_power=0.65,
                                 multiplier_scale=10.0)),
     schedules=None))
