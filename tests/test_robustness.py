@@ -218,6 +218,22 @@ def test_the_planner_of_the_evaluation_is_not_part_of_a_checkpoints_config(tmp_p
         checkpoints.Checkpoints(path, True, config={**config, "seed": 1})
 
 
+def test_a_checkpoint_older_than_a_key_reads_as_its_former_behaviour(tmp_path, tiny):
+    """algo.merge_stateful_inner came after checkpoints were written: one without it holds
+    the unmerged training, so it resumes under false and is refused under true."""
+    t = tiny_dicrl.make_trainer(tiny)
+    t.train(1)
+    path = tmp_path / "checkpoint.pt"
+    config = training_config(compose_train(*TINY))
+    assert config["algo.merge_stateful_inner"] is False
+    older = {k: v for k, v in config.items() if k != "algo.merge_stateful_inner"}
+    checkpoints.Checkpoints(path, False, config=older).save("D-ICRL", t)
+    assert checkpoints.Checkpoints(path, True, config=config).states("D-ICRL")
+    with pytest.raises(ValueError, match="algo.merge_stateful_inner: False in the checkpoint"):
+        checkpoints.Checkpoints(path, True,
+                                config={**config, "algo.merge_stateful_inner": True})
+
+
 @pytest.mark.parametrize("content", [b"", b"not a checkpoint", b"PK\x03\x04truncated"])
 def test_an_unreadable_checkpoint_is_refused(tmp_path, content):
     path = tmp_path / "checkpoint.pt"

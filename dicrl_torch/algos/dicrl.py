@@ -178,18 +178,12 @@ class DICRL:
         inner_steps: K, inner iterations per outer iteration (>= 2).
         lsca_curvature: ρ of the LSCA surrogate (1 in the paper).
         prune_accrued: zero features the learner's own demonstrations accrue.
-        merge_identical_inner: compute bit-identical inner processes once (the results
-            are the same either way; tested). Only exact for a stateless learner model:
-            a stateful one (SAC, ``learner_model.stateful``) trains its solvers inside
-            every inner process, so merging would silently skip training updates, and
-            it is merged only with ``merge_stateful_inner``.
-        merge_stateful_inner: with a stateful learner model, also run one inner process
-            for learners whose ω_c are equal and whose η start from one shared process.
-            Algorithm 1's inner processes for equal ω_c are one problem; unmerged, each
-            learner's SAC trains through all N_L of them, N_L (K - 1) solves per outer
-            iteration where K - 1 solve the problem (C-ICRL's count). Fewer SAC updates,
-            so other numbers than unmerged; the decision uses public values only, so
-            every backend merges alike.
+        merge_identical_inner: run one inner process for learners with equal ω_c and a
+            shared warm start (one problem): bit-identical for a stateless model (tested).
+        merge_stateful_inner: merge those of a stateful model (SAC) too. Unmerged, each
+            learner's solver trains through all N_L processes (N_L (K - 1) solves per
+            outer iteration, where C-ICRL takes K - 1): merged, fewer updates, other
+            numbers.
         inner_method: ``"paper"`` (Algorithm 2) or ``"gradient_tracking"`` (constant
             ``inner_step``, see the module docstring).
         callbacks: :class:`~dicrl_torch.algos.callbacks.TrainerCallback` s called during
@@ -216,8 +210,7 @@ class DICRL:
                  init_reward_weights: float | torch.Tensor = 0.0,
                  init_multiplier: float = -1.0, progress: bool = False,
                  merge_identical_inner: bool = True, merge_stateful_inner: bool = False,
-                 inner_method: str = "paper",
-                 inner_step: float = 0.01,
+                 inner_method: str = "paper", inner_step: float = 0.01,
                  callbacks: Sequence[TrainerCallback] = ()) -> None:
         check_trainer_options(
             inner_steps=inner_steps, lsca_curvature=lsca_curvature,
@@ -422,9 +415,8 @@ class DICRL:
 
     def _inner_groups(self, cost_all: torch.Tensor, previous: list[list[int]]) -> list[list[int]]:
         """Learners whose inner processes solve one problem: equal ω_c and warm-started
-        from one shared process (or all from the initial η); for a stateless model
-        bit-identical computations. Decided from globally known values only, so every
-        process of a distributed run agrees."""
+        from one shared process (or all from the initial η). Decided from globally known
+        values only, so every process of a distributed run agrees."""
         n = self.state.outer_iteration
         owner = {u: i for i, g in enumerate(previous) for u in g} if n > 0 else {}
         groups: list[list[int]] = []

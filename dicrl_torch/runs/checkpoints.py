@@ -38,6 +38,9 @@ CHECKPOINT_IGNORED = ("env.task", "solver.progress", "solver.planner", "algo.out
                       "algo.threshold",
                       "algo.prune_min_gain", "algo.constraint_rule", "algo.certificate",
                       "algo.run_c_icrl", "algo.run_d_icrl", "algo.c_icrl_beside_learners")
+# Keys added since checkpoints were first written, with the value that gives the training
+# of the releases before them: an older checkpoint reads as holding that value.
+CHECKPOINT_ADDED = {"algo.merge_stateful_inner": False}
 
 
 def _ignored(key: str) -> bool:
@@ -137,6 +140,7 @@ class Checkpoints:
             return
         # A checkpoint of an older release may hold keys ignored since (solver.planner).
         saved = {k: v for k, v in saved.items() if not _ignored(k)}
+        saved = {**{k: v for k, v in CHECKPOINT_ADDED.items() if k in self.config}, **saved}
         if saved == self.config:
             return
         raise ValueError(
