@@ -16,6 +16,7 @@ import dataclasses
 import json
 import re
 import shutil
+import time
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -213,11 +214,13 @@ def evaluate_method(name: str, trainer: DICRL, *, task: Task, settings: RunSetti
     rows = []
     step = settings.outer_iterations
     for i, v in enumerate(trainer.local):
+        label = f"{name} learner {v + 1}"
         if saved is None:
+            t0 = time.perf_counter()
             row, rollouts = task.evaluate_learner(trainer, i, progress)
+            print(f"{label}: evaluated in {time.perf_counter() - t0:.0f} s", flush=True)
         else:
             row, rollouts = saved[i], ()
-        label = f"{name} learner {v + 1}"
         log_row(task, logger, run_of(v), label, row, rollouts, step,
                 out / f"constraints_{file_stem(name)}_{v + 1}.png")
         rows.append(row)
