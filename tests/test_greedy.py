@@ -583,3 +583,24 @@ def test_the_runner_runs_a_greedy_that_cannot_resume_again_from_the_start(tmp_pa
     assert "running it again from the start" in capsys.readouterr().out
     assert res.added == done.added and res.log_likelihood == done.log_likelihood
     assert len(res.steps) == len(done.steps)  # every candidate evaluated again
+
+
+@pytest.mark.parametrize("dtype,close,far", [(torch.float64, 1e-10, 1e-7),
+                                             (torch.float32, 3e-7, 1e-3)])
+def test_a_record_resumes_through_another_machines_rounding(dtype, close, far):
+    """A float32 solve's log-likelihood differs in its last bits on another CPU (vector
+    width of the compiled kernels, threads): such a record still resumes; one that differs
+    more, as another problem's does, is refused. float64 keeps the tight check."""
+    kw = _two_constraint_greedy_kwargs()
+    solver = kw["solver"]
+    kw["solver"] = FactoredSoftBellman(model=solver.model, dtype=dtype)
+    records: list[dict] = []
+    whole = GreedyConstraintInference(**kw).run(on_step=records.append)
+    record = records[-1]
+    saved = record["log_likelihood"][-1]
+    nudged = {**record, "log_likelihood": record["log_likelihood"][:-1] + [saved * (1 + close)]}
+    assert _outcome(GreedyConstraintInference(**kw).run(resume_from=nudged))[0] == \
+        _outcome(whole)[0]
+    moved = {**record, "log_likelihood": record["log_likelihood"][:-1] + [saved * (1 + far)]}
+    with pytest.raises(ValueError, match="does not belong to this problem"):
+        GreedyConstraintInference(**kw).run(resume_from=moved)
