@@ -490,7 +490,7 @@ class ContentRecorder(SimulatedCommunicator):
         return out
 
 
-@pytest.mark.parametrize("inner_method", ["paper", "gradient_tracking"])
+@pytest.mark.parametrize("inner_method", ["paper", "tracking", "gradient_tracking"])
 def test_messages_hold_only_documented_fields_and_no_local_statistics(tiny, inner_method):
     comm = ContentRecorder(len(tiny_dicrl.SPLIT))
     # one shared initial ω_c: one inner process serves all learners (fast; tested equal)
@@ -505,7 +505,7 @@ def test_messages_hold_only_documented_fields_and_no_local_statistics(tiny, inne
     assert set(sizes) == set(ALLOWED_FIELDS)
     fields = {f for f, _ in comm.sent}
     expected = {"eta", "cost_weights", "tracker", "demonstrated"} | (
-        {"inner_tracker"} if inner_method == "gradient_tracking" else set())
+        {"inner_tracker"} if inner_method != "paper" else set())
     assert fields == expected
     assert len(comm.sent) == len(comm.messages)
     private = [x for st in t.stats for x in (st.mu_r_hat, st.cost_accrual)]

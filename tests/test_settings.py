@@ -50,7 +50,7 @@ def sac_settings(**changes):
     (lambda: StepSizes(alpha_bar=float("inf")), "alpha_bar", "positive"),
     (lambda: check_trainer_options(inner_steps=1), "inner_steps", "int >= 2"),
     (lambda: check_trainer_options(inner_method="newton"), "inner_method",
-     "'paper' or 'gradient_tracking'"),
+     "one of 'paper', 'tracking', 'gradient_tracking'"),
     (lambda: check_trainer_options(init_cost_weights=1.5), "init_cost_weights", "[0, 1]"),
     (lambda: TrainerSpec(schedules=None, steps=StepSizes(), inner_step=-1.0, n_shards=2),
      "inner_step", "positive"),

@@ -18,10 +18,9 @@ Outer step (Algorithm 1) for learner v::
     ω̃^[v]    = Proj_[0,1](ω_c^[v] + N_L y^[v] / ρ)              (LSCA; the paper: ρ = 1)
     ω_c^[v](n+1) = Σ_v' W̄[v,v'] (ω_c^[v'] + β(n)(ω̃^[v'] − ω_c^[v']))
 
-Beyond the paper, ``inner_method="gradient_tracking"`` replaces Algorithm 2's
-diminishing step with a constant step and a tracker of the network-average gradient
-(DIGing): ``η ← W η − α s``, ``s ← W s + g(η_new) − g(η_old)``, ``s(0) = g(η(0))``, with
-``g = m^[v] ∇G^[v]``; the output is the final η.
+Beyond the paper, two inner methods track the network-average gradient
+(:mod:`dicrl_torch.algos.inner`): ``"tracking"`` keeps Algorithm 2's steps and average and
+makes the network take C-ICRL's step; ``"gradient_tracking"`` takes a constant step.
 
 Departures from the paper, each optional and documented in the config: the LSCA
 curvature ρ (the printed step ``ω_c + N_L y`` moves by the raw likelihood gradient,
@@ -42,6 +41,7 @@ import torch
 
 from dicrl_torch.algos.callbacks import TrainerCallback
 from dicrl_torch.algos.icrl import dual_gradient, local_gradient
+from dicrl_torch.algos.inner import InnerProcesses
 from dicrl_torch.algos.models import LearnerModel, ModelSolution, TabularLearnerModel
 from dicrl_torch.checks import setting_bool, setting_choice, setting_int, setting_number
 from dicrl_torch.comm.communicator import fixed_order_mix
@@ -110,7 +110,7 @@ _OPTION_RULES: dict[str, Callable[[Any], Any]] = {
     "prune_accrued": lambda v: setting_bool("prune_accrued", v),
     "merge_stateful_inner": lambda v: setting_bool("merge_stateful_inner", v),
     "inner_method": lambda v: setting_choice("inner_method", v,
-                                             ("paper", "gradient_tracking")),
+                                             ("paper", "tracking", "gradient_tracking")),
     "inner_step": lambda v: setting_number(
         "inner_step", v, low=0, low_open=True, example=0.005,
         why="the constant step of inner_method=gradient_tracking"),
@@ -160,7 +160,7 @@ class LearnerState:
     groups: list[list[int]] = field(default_factory=list)
 
 
-class DICRL:
+class DICRL(InnerProcesses):
     """The D-ICRL trainer.
 
     Args:
@@ -184,8 +184,8 @@ class DICRL:
             learner's solver trains through all N_L processes (N_L (K - 1) solves per
             outer iteration, where C-ICRL takes K - 1): merged, fewer updates, other
             numbers.
-        inner_method: ``"paper"`` (Algorithm 2) or ``"gradient_tracking"`` (constant
-            ``inner_step``, see the module docstring).
+        inner_method: ``"paper"`` (Algorithm 2), ``"tracking"`` or
+            ``"gradient_tracking"`` (constant ``inner_step``): :mod:`~.inner`.
         callbacks: :class:`~dicrl_torch.algos.callbacks.TrainerCallback` s called during
             :meth:`train` (logging, checkpoints, evaluation, stopping), before those
             given to :meth:`train` itself.
@@ -373,45 +373,6 @@ class DICRL:
         W = failures.realise(W, self.state.outer_iteration, self._process, k)
         self._union = (W > 0) if k == 0 else self._union | (W > 0)
         return W
-
-    def inner_process(self, cost_weights: torch.Tensor, eta0: torch.Tensor
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The inner process for one ω_c ``[d]``: ``eta0`` ``[n, p]`` -> (η̄ ``[n, p]``,
-        final η ``[n, p]``) of the local learners."""
-        if self.inner_method == "gradient_tracking":
-            return self._inner_gradient_tracking(cost_weights, eta0)
-        eta = eta0.clone()
-        acc = torch.zeros_like(eta)
-        alpha_sum = 0.0
-        for k in range(self.K):
-            a = self.steps.alpha(k)
-            acc += a * eta
-            alpha_sum += a
-            if k == self.K - 1:
-                break
-            grads = self._scaled_gradients(eta, cost_weights, k)
-            self._check_finite("The dual gradient m ∇G", grads, k, self._process)
-            eta = self.comm.mix(eta, self._inner_matrix(k), "eta") - a * grads
-            self._check_finite("η = [ω_r, λ]", eta, k, self._process)
-        return acc / alpha_sum, eta
-
-    def _inner_gradient_tracking(self, cost_weights, eta0):
-        eta = eta0.clone()
-        g = self._scaled_gradients(eta, cost_weights, 0)
-        self._check_finite("The dual gradient m ∇G", g, 0, self._process)
-        s = g
-        for k in range(self.K - 1):
-            W = self._inner_matrix(k)
-            eta = self.comm.mix(eta, W, "eta") - self.inner_step * s
-            self._check_finite("η = [ω_r, λ]", eta, k, self._process)
-            if k == self.K - 2:
-                break
-            g_new = self._scaled_gradients(eta, cost_weights, k + 1)
-            self._check_finite("The dual gradient m ∇G", g_new, k + 1, self._process)
-            s = self.comm.mix(s, W, "inner_tracker") + g_new - g
-            self._check_finite("The inner gradient tracker", s, k + 1, self._process)
-            g = g_new
-        return eta, eta
 
     def _inner_groups(self, cost_all: torch.Tensor, previous: list[list[int]]) -> list[list[int]]:
         """Learners whose inner processes solve one problem: equal ω_c and warm-started

@@ -1,0 +1,101 @@
+"""The inner processes of D-ICRL: Algorithm 2 and two variants that track the network's
+average gradient (docs/design.md §5).
+
+For one cost vector ω_c every learner ``v`` runs, from its warm start ``η^[v](0)``,
+``K - 1`` steps on its dual gradient ``g^[v] = m^[v] ∇G^[v](η^[v]; ω_c)`` (``m^[v]`` its
+trajectory count, so ``Σ_v g^[v]`` is the gradient on the pooled demonstrations that
+C-ICRL steps on), mixing over the inner graph ``W(k)``:
+
+- ``"paper"`` (Algorithm 2): ``η ← W η − α(k) g``, ``α(k) = ᾱ / (k + 1)``, output the
+  α-weighted average ``η̄ = Σ_k α(k) η(k) / Σ_k α(k)``. Mixing moves the learners'
+  average by the mean of their steps, ``α(k) Σ_v g^[v] / N_L``: a ``1 / N_L`` of C-ICRL's
+  step on the same data. Each learner's own iterate moves by its own step
+  ``α(k) g^[v]``, fitted to its shard alone.
+- ``"tracking"``: the same steps, schedule and average, but adapt-then-combine with a
+  tracker ``s`` of the average gradient::
+
+      η ← W (η − N_L α(k) s),   s ← W (s + g(η_new) − g(η_old)),   s(0) = g(η(0))
+
+  The trackers' mean is the gradients' mean at every step (W doubly stochastic), so the
+  network takes C-ICRL's step ``α(k) Σ_v g^[v]``; on a complete uniform W every learner's
+  η is C-ICRL's iterate on the pooled shards (tested), on a sparser W it is that up to
+  the consensus error. A network of one runs Algorithm 2 itself (the same numbers,
+  bit for bit, where the tracker would round ``s + g_new - g``).
+- ``"gradient_tracking"`` (DIGing): ``η ← W η − inner_step · s``,
+  ``s ← W s + g(η_new) − g(η_old)``, a constant step; the output is the final η.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+class InnerProcesses:
+    """The inner process of :class:`~dicrl_torch.algos.dicrl.DICRL` (a mixin: it reads the
+    trainer's ``inner_method``, ``inner_step``, ``K``, ``steps``, ``n_learners``, ``comm``
+    and its gradient, graph and finiteness helpers)."""
+
+    def inner_process(self, cost_weights: torch.Tensor, eta0: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The inner process for one ω_c ``[d]``: ``eta0`` ``[n, p]`` -> (η̄ ``[n, p]``,
+        final η ``[n, p]``) of the local learners."""
+        if self.inner_method == "gradient_tracking":
+            return self._inner_gradient_tracking(cost_weights, eta0)
+        if self.inner_method == "tracking" and self.n_learners > 1:
+            return self._inner_tracking(cost_weights, eta0)
+        eta = eta0.clone()
+        acc = torch.zeros_like(eta)
+        alpha_sum = 0.0
+        for k in range(self.K):
+            a = self.steps.alpha(k)
+            acc += a * eta
+            alpha_sum += a
+            if k == self.K - 1:
+                break
+            grads = self._gradients(eta, cost_weights, k)
+            eta = self.comm.mix(eta, self._inner_matrix(k), "eta") - a * grads
+            self._check_finite("η = [ω_r, λ]", eta, k, self._process)
+        return acc / alpha_sum, eta
+
+    def _gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor, k: int
+                   ) -> torch.Tensor:
+        grads = self._scaled_gradients(eta, cost_weights, k)
+        self._check_finite("The dual gradient m ∇G", grads, k, self._process)
+        return grads
+
+    def _inner_tracking(self, cost_weights, eta0):
+        eta = eta0.clone()
+        acc = torch.zeros_like(eta)
+        alpha_sum = 0.0
+        g = s = self._gradients(eta, cost_weights, 0)
+        for k in range(self.K - 1):
+            a = self.steps.alpha(k)
+            acc += a * eta
+            alpha_sum += a
+            W = self._inner_matrix(k)
+            eta = self.comm.mix(eta - (a * self.n_learners) * s, W, "eta")
+            self._check_finite("η = [ω_r, λ]", eta, k, self._process)
+            if k < self.K - 2:  # the last iterate needs no gradient
+                g_new = self._gradients(eta, cost_weights, k + 1)
+                s = self.comm.mix(s + g_new - g, W, "inner_tracker")
+                self._check_finite("The inner gradient tracker", s, k + 1, self._process)
+                g = g_new
+        a = self.steps.alpha(self.K - 1)
+        acc += a * eta
+        alpha_sum += a
+        return acc / alpha_sum, eta
+
+    def _inner_gradient_tracking(self, cost_weights, eta0):
+        eta = eta0.clone()
+        g = s = self._gradients(eta, cost_weights, 0)
+        for k in range(self.K - 1):
+            W = self._inner_matrix(k)
+            eta = self.comm.mix(eta, W, "eta") - self.inner_step * s
+            self._check_finite("η = [ω_r, λ]", eta, k, self._process)
+            if k == self.K - 2:
+                break
+            g_new = self._gradients(eta, cost_weights, k + 1)
+            s = self.comm.mix(s, W, "inner_tracker") + g_new - g
+            self._check_finite("The inner gradient tracker", s, k + 1, self._process)
+            g = g_new
+        return eta, eta

@@ -1,0 +1,77 @@
+"""The inner processes (``dicrl_torch.algos.inner``) against C-ICRL's on the pooled
+shards: tracking makes the network take C-ICRL's step, Algorithm 2 a 1/N_L of it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tiny_dicrl
+import torch
+
+from dicrl_torch.algos.dicrl import DICRL, StepSizes
+from dicrl_torch.comm import CompleteSchedule, SimulatedCommunicator
+from dicrl_torch.demos.storage import Demonstrations
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return tiny_dicrl.build_tiny()
+
+
+def c_icrl(tiny, inner_method: str = "paper", inner_steps: int = 3) -> DICRL:
+    """C-ICRL: one learner holding every shard, the tiny trainer's settings."""
+    solver, rb, cb, shards = tiny
+    pooled = Demonstrations(states=np.concatenate([s.states for s in shards]),
+                            actions=np.concatenate([s.actions for s in shards]),
+                            n_cells=shards[0].n_cells, n_actions=shards[0].n_actions)
+    return DICRL(solver=solver, reward_basis=rb, cost_basis=cb, shards=[pooled],
+                 trajectory_counts=[sum(tiny_dicrl.SPLIT)],
+                 communicator=SimulatedCommunicator(1),
+                 inner_schedule=CompleteSchedule(n_learners=1),
+                 outer_schedule=CompleteSchedule(n_learners=1), init_cost_weights=0.3,
+                 steps=StepSizes(alpha_bar=0.02), inner_steps=inner_steps,
+                 lsca_curvature=10.0, inner_method=inner_method)
+
+
+def relative_gap(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).abs().max() / b.abs().max())
+
+
+def test_tracking_on_a_complete_graph_is_c_icrl_on_the_pooled_shards(tiny):
+    """Every learner's η̄ after the first inner process is C-ICRL's (to rounding); under
+    Algorithm 2 the network's step is a third of it (N_L = 3), and η̄ far from it."""
+    c = c_icrl(tiny)
+    c.train(1)
+    n = len(tiny_dicrl.SPLIT)
+    rows = {}
+    for method in ("tracking", "paper"):
+        d = tiny_dicrl.make_trainer(tiny, inner=CompleteSchedule(n_learners=n),
+                                    inner_method=method, init_cost=0.3)
+        d.train(1)
+        rows[method] = d.state.eta_bar
+    want = c.state.eta_bar.expand(n, -1)
+    assert relative_gap(rows["tracking"], want) < 1e-12
+    assert relative_gap(rows["paper"], want) > 1e-2
+
+
+def test_tracking_keeps_the_network_on_c_icrls_step_over_a_sparse_graph(tiny):
+    """One step (K = 2) over the time-varying graph, where no W(0) connects the learners:
+    their mean η̄ is C-ICRL's, since W is doubly stochastic; not so under Algorithm 2."""
+    c = c_icrl(tiny, inner_steps=2)
+    c.train(1)
+    means = {}
+    for method in ("tracking", "paper"):
+        d = tiny_dicrl.make_trainer(tiny, inner_method=method, init_cost=0.3, inner_steps=2)
+        d.train(1)
+        assert relative_gap(d.state.eta_bar, d.state.eta_bar.mean(0)) > 1e-3  # apart
+        means[method] = d.state.eta_bar.mean(0, keepdim=True)
+    assert relative_gap(means["tracking"], c.state.eta_bar) < 1e-12
+    assert relative_gap(means["paper"], c.state.eta_bar) > 1e-2
+
+
+def test_a_network_of_one_runs_algorithm_2_bit_for_bit(tiny):
+    paper, tracking = c_icrl(tiny), c_icrl(tiny, inner_method="tracking")
+    paper.train(2)
+    tracking.train(2)
+    for key in ("eta", "eta_bar", "cost_weights"):
+        assert torch.equal(getattr(paper.state, key), getattr(tracking.state, key))
