@@ -218,7 +218,7 @@ def evaluate_method(name: str, trainer: DICRL, *, task: Task, settings: RunSetti
         if saved is None:
             t0 = time.perf_counter()
             row, rollouts = task.evaluate_learner(trainer, i, progress)
-            print(f"{label}: evaluated in {time.perf_counter() - t0:.0f} s", flush=True)
+            print(f"evaluated {label} in {time.perf_counter() - t0:.0f} s", flush=True)
         else:
             row, rollouts = saved[i], ()
         log_row(task, logger, run_of(v), label, row, rollouts, step,
