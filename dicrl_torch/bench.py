@@ -19,6 +19,17 @@ process on the same threads::
      "ratio": {"updates_per_s": float, "env_steps_per_s": float}, "threads": int, ...}
 
 ``ratio`` is the lean loop's median over the SB3 loop's (today's loop before the lean one).
+
+``python -m dicrl_torch.bench certificate --experts N [--candidates C] ...``: the hard solves
+of the identifiability classes and the certificate (every undemonstrated feature but one
+forbidden, :mod:`dicrl_torch.algos.identifiability`), on the full grid and on the cells the
+mask leaves open, the same candidates, and the exact forward pass that follows each::
+
+    {"full_solve_s": float, "open_solve_s": float, "forward_s": float,
+     "ratio": {"solve": float}, "same_probabilities": bool, "open_cells": [int], ...}
+
+medians per candidate over ``C`` candidates (after one untimed warm-up of each path, which
+also compiles); ``same_probabilities``: both paths give every candidate's probability equal.
 """
 
 from __future__ import annotations
@@ -34,12 +45,17 @@ from typing import Any
 import numpy as np
 import torch
 
+from dicrl_torch.algos.accrual import AllButOne, Chain, Hits, Positive, killed_forward
+from dicrl_torch.algos.greedy import cost_features_of
+from dicrl_torch.algos.identifiability import demonstrated_mask
 from dicrl_torch.demos.drone_demos import make_drone_demonstrations
 from dicrl_torch.envs.drones import DroneDynamics, JointDroneEnv
 from dicrl_torch.envs.grid import GridLayout, TabularGridModel
 from dicrl_torch.features.bases import GoalClosenessRewardBasis, SharedIndicatorCostBasis
 from dicrl_torch.features.drone import CellOccupancyCostBasis, DoorLocationRewardBasis
+from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 from dicrl_torch.solvers.factored import FactoredSoftBellman
+from dicrl_torch.solvers.factored.open_cells import OpenCellsSolution, solve_hard
 from dicrl_torch.solvers.sac import SACConstrainedSolver
 from dicrl_torch.solvers.sac.lean import learn_together
 
@@ -157,6 +173,59 @@ def bench_sac(*, steps: int = 2000, repeat: int = 3, device: str = "cpu", seed: 
     }
 
 
+def bench_certificate(*, experts: int, candidates: int = 3, demonstrations: int = 100,
+                      horizon: int = 40, compile: bool | str = "auto", seed: int = 0) -> dict:
+    """Time ``candidates`` hard solves on the full grid and on the open cells (module
+    docstring), on the paper's layout with ``demonstrations`` optimal ones."""
+    model = TabularGridModel(layout=GridLayout.scobee(experts), horizon=horizon, gamma=0.99)
+    solver = FactoredSoftBellman(model=model, compile=compile)
+    rb, cb = GoalClosenessRewardBasis(model), SharedIndicatorCostBasis(model)
+    reward = rb().weighted(rb.true_weights())
+    demos = sample_trajectories(
+        expert_solution(solver=solver, reward_features=rb(), reward_weights=rb.true_weights(),
+                        temperature=0.0), demonstrations, np.random.default_rng(seed))
+    unseen = ~demonstrated_mask(cost_basis=cb, model=model, demonstrations=demos)
+    features, _ = cost_features_of(cb, model)
+    pos = Positive(features)
+    masks, chain = AllButOne(features, unseen, pos, model), Chain(model, solver.device)
+    d0 = model.initial_distribution().reshape(-1).to(solver.device)
+
+    def full(r, terminal):
+        return OpenCellsSolution(solver.solve(r, temperature=0.0, forward=False,
+                                              terminal_value=terminal), solver, None)
+
+    times: dict[str, list[float]] = {"full": [], "open": [], "forward": []}
+    probabilities: dict[str, list[float]] = {"full": [], "open": []}
+    open_cells = []
+    todo = torch.nonzero(unseen).flatten().tolist()[:candidates + 1]
+    for n, j in enumerate(todo):
+        mask, terminal = masks(j)
+        target = torch.zeros(features.dim, dtype=torch.bool)
+        target[j] = True
+        hits = Hits(features, target, model, solver.device, False, pos)
+        for path, solve in (("full", full), ("open", lambda r, t: solve_hard(solver, r, t))):
+            t0 = time.perf_counter()
+            sol = solve(reward + mask, terminal)
+            t1 = time.perf_counter()
+            p = killed_forward(sol, hits, d0, chain)
+            if n > 0:  # the first candidate warms up (and compiles)
+                times[path].append(t1 - t0)
+                times["forward"].append(time.perf_counter() - t1)
+                probabilities[path].append(p)
+                if path == "open":
+                    open_cells.append(sol.solution.solver.model.n_cells - 1
+                                      if sol.index is not None else model.n_cells)
+    full_s, open_s = statistics.median(times["full"]), statistics.median(times["open"])
+    return {
+        "full_solve_s": full_s, "open_solve_s": open_s,
+        "forward_s": statistics.median(times["forward"]), "ratio": {"solve": full_s / open_s},
+        "same_probabilities": probabilities["full"] == probabilities["open"],
+        "open_cells": open_cells, "cells": model.n_cells, "pairs": model.n_pairs,
+        "experts": experts, "candidates": len(open_cells), "demonstrations": demonstrations,
+        "compiled": solver.use_compile, "threads": torch.get_num_threads(),
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dicrl_torch.bench")
     sub = parser.add_subparsers(dest="what", required=True)
@@ -175,7 +244,20 @@ def main(argv: list[str] | None = None) -> int:
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--learners", type=int, default=1,
                    help="learners in the process (the lean ones trained as one ensemble)")
+    c = sub.add_parser("certificate", help="time the certificate's hard solves, full grid "
+                                           "and open cells")
+    c.add_argument("--experts", type=int, default=3, choices=(1, 2, 3))
+    c.add_argument("--candidates", type=int, default=3, help="timed candidates (median)")
+    c.add_argument("--demonstrations", type=int, default=100)
+    c.add_argument("--horizon", type=int, default=40)
     args = parser.parse_args(argv)
+    if args.what == "certificate":
+        if min(args.candidates, args.demonstrations, args.horizon) < 1:
+            parser.error("--candidates, --demonstrations and --horizon must be >= 1")
+        print(json.dumps(bench_certificate(experts=args.experts, candidates=args.candidates,
+                                           demonstrations=args.demonstrations,
+                                           horizon=args.horizon)), flush=True)
+        return 0
     if args.what == "sac":
         if args.steps < 4 or min(args.repeat, args.threads, args.learners) < 1:
             parser.error("--steps must be >= 4, --repeat, --threads and --learners >= 1")

@@ -35,3 +35,12 @@ def test_the_sac_bench_prints_both_loops_and_their_ratio(capsys):
         assert line["loops"][loop]["env_steps_per_s"] > 0
     ratio = line["ratio"]["updates_per_s"]
     assert ratio == line["loops"]["lean"]["updates_per_s"] / line["loops"]["sb3"]["updates_per_s"]
+
+
+def test_the_certificate_bench_times_both_paths_on_the_same_candidates(capsys):
+    assert bench.main(["certificate", "--experts", "2", "--candidates", "2",
+                       "--demonstrations", "20", "--horizon", "12"]) == 0
+    line = json.loads(capsys.readouterr().out.strip())
+    assert line["candidates"] == 2 and line["same_probabilities"] is True
+    assert all(0 < k < line["cells"] for k in line["open_cells"])
+    assert line["ratio"]["solve"] == line["full_solve_s"] / line["open_solve_s"]
