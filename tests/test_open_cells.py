@@ -24,7 +24,6 @@ from dicrl_torch.solvers.experts import expert_solution, sample_trajectories
 from dicrl_torch.solvers.factored import FactoredSoftBellman
 from dicrl_torch.solvers.factored.open_cells import (
     OpenCellsModel,
-    OpenCellsSolution,
     closed_cells,
     solve_hard,
 )
@@ -106,8 +105,7 @@ def test_nothing_closed_solves_the_full_model():
 
 
 def full_only(solver, reward, terminal):
-    return OpenCellsSolution(solver.solve(reward, temperature=0.0, forward=False,
-                                          terminal_value=terminal), solver, None)
+    return solve_hard(solver, reward, terminal, open_cells=False)
 
 
 def test_the_certificate_is_the_full_models(monkeypatch):

@@ -133,17 +133,18 @@ class OpenCellsSolution:
 
 
 def solve_hard(solver: FactoredSoftBellman, reward: FactoredReward,
-               terminal: torch.Tensor | None) -> OpenCellsSolution:
+               terminal: torch.Tensor | None, open_cells: bool = True) -> OpenCellsSolution:
     """The hard-max (temperature 0) backward solve of ``reward`` with ``V_T = terminal``,
-    on the open cells where :func:`closed_cells` closes any, else on the full model.
+    on the open cells where :func:`closed_cells` closes any, else (or with ``open_cells``
+    False: the reference the benchmark and tests compare with) on the full model.
 
     The open-cell solver compiles its kernels where ``solver`` does and the open model
     is large enough to pay for it (:data:`~.solver.COMPILE_MIN_PAIRS`); one compilation
     per number of open cells, and a classification sees two or three. Eager, its chunks
     of expert-1 cells hold no more pairs than the full solver's (no more memory).
     """
-    closed = closed_cells(reward, terminal)
-    if not closed.any() or closed.all():
+    closed = closed_cells(reward, terminal) if open_cells else None
+    if closed is None or not closed.any() or closed.all():
         sol = solver.solve(reward, temperature=0.0, forward=False, terminal_value=terminal)
         return OpenCellsSolution(sol, solver, None)
     model = solver.model
