@@ -75,3 +75,53 @@ def test_a_network_of_one_runs_algorithm_2_bit_for_bit(tiny):
     tracking.train(2)
     for key in ("eta", "eta_bar", "cost_weights"):
         assert torch.equal(getattr(paper.state, key), getattr(tracking.state, key))
+
+
+def test_tracking_carries_its_tracker_into_the_next_process(tiny):
+    """The second outer iteration's process starts from ``s' + g(η(0)) − g'`` (where the
+    first left its tracker), by a hand computation of its K = 4 steps over the
+    time-varying graph; restarted at ``g(η(0))`` it would end elsewhere. (With K = 3 the
+    two agree: the last tracker mix and the next first step use the same idempotent W(0),
+    which annihilates ``s' − g'``.) The trackers' sum is the gradients' sum where each
+    process leaves them."""
+    K = 4
+    d = tiny_dicrl.make_trainer(tiny, inner_method="tracking", init_cost=0.3, inner_steps=K)
+    d.train(1)
+    st = d.state
+    left_s, left_g = st.inner_tracker[0, 0], st.inner_tracker[1, 0]  # one process: [n, p]
+    assert relative_gap(left_s.sum(0), left_g.sum(0)) < 1e-12
+    eta0, cost = st.eta[0].clone(), st.cost_weights[0].clone()
+    n = len(tiny_dicrl.SPLIT)
+
+    def by_hand(s0_of):
+        eta, g = eta0, d._gradients(eta0, cost, 0)
+        s = s0_of(g)
+        for k in range(K - 1):
+            W = d._inner_matrix(k)
+            eta = W @ (eta - n * d.steps.alpha(k) * s)
+            if k < K - 2:
+                g_new = d._gradients(eta, cost, k + 1)
+                s, g = W @ (s + g_new - g), g_new
+        return eta
+
+    carried = by_hand(lambda g0: left_s + g0 - left_g)
+    restarted = by_hand(lambda g0: g0)
+    d.train(2)
+    assert relative_gap(d.state.eta[0], carried) < 1e-12
+    assert relative_gap(d.state.eta[0], restarted) > 1e-6
+
+
+def test_tracking_resumes_bit_for_bit_with_its_tracker(tiny):
+    whole = tiny_dicrl.make_trainer(tiny, inner_method="tracking")
+    whole.train(4)
+    first = tiny_dicrl.make_trainer(tiny, inner_method="tracking")
+    first.train(2)
+    resumed = tiny_dicrl.make_trainer(tiny, inner_method="tracking")
+    resumed.load_state_dict(first.state_dict())
+    resumed.train(4)
+    for key in ("eta", "eta_bar", "cost_weights", "inner_tracker"):
+        assert torch.equal(getattr(whole.state, key), getattr(resumed.state, key)), key
+    sd = first.state_dict()
+    sd["fingerprint"] = sd["fingerprint"].replace("carried-tracker ", "")
+    with pytest.raises(ValueError, match="differently configured"):  # a restarting tracker's
+        resumed.load_state_dict(sd)
