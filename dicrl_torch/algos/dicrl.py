@@ -148,8 +148,6 @@ class LearnerState:
         eta: ``[N_L, n, p]`` warm-start η for each inner process u (p = l_r + 1).
         eta_bar: ``[n, p]`` the averaged η̄ of each learner's own inner process.
         tracker, last_lga: ``[n, d]`` y(n−1) and g(n−1).
-        inner_tracker: ``[2, N_L, n, p]`` the inner tracker s and gradient g where each
-            process u left them (``inner_method="tracking"``; None before, or otherwise).
         groups: inner processes known to coincide (see ``_inner_groups``).
     """
 
@@ -158,7 +156,6 @@ class LearnerState:
     eta_bar: torch.Tensor
     tracker: torch.Tensor | None = None
     last_lga: torch.Tensor | None = None
-    inner_tracker: torch.Tensor | None = None
     outer_iteration: int = 0
     groups: list[list[int]] = field(default_factory=list)
 
@@ -442,8 +439,6 @@ class DICRL(InnerProcesses):
         groups = self._inner_groups(cost_all, st.groups)
         new_eta = torch.empty_like(st.eta)
         eta_bar_own = torch.empty_like(st.eta_bar)
-        self._tracker_left = None
-        inner_tracker = None
         disconnected = 0
         for g in groups:
             self._log_rows = [i for i, v in enumerate(self.local) if v in g]
@@ -451,18 +446,13 @@ class DICRL(InnerProcesses):
             bar, last = self.inner_process(cost_all[g[0]], st.eta[g[0]])
             if getattr(self.comm, "link_failures", None) is not None:
                 disconnected += not strongly_connected(self._union.numpy())
-            if self._tracker_left is not None and inner_tracker is None:
-                inner_tracker = torch.empty(2, *st.eta.shape, dtype=st.eta.dtype)
             for u in g:
                 new_eta[u] = last
-                if inner_tracker is not None:
-                    inner_tracker[:, u] = self._tracker_left
                 for i, v in enumerate(self.local):
                     if v == u:
                         eta_bar_own[i] = bar[i]
         self._check_finite("The averaged η̄", eta_bar_own)
         st.eta, st.eta_bar, st.groups = new_eta, eta_bar_own, groups
-        st.inner_tracker = inner_tracker
 
         # Local gradient approximation at each learner's own (ω_c, η̄).
         lga = torch.stack([
@@ -542,7 +532,7 @@ class DICRL(InnerProcesses):
         st = self.state
         sd = {
             "cost_weights": st.cost_weights, "eta": st.eta, "eta_bar": st.eta_bar,
-            "tracker": st.tracker, "last_lga": st.last_lga, "inner_tracker": st.inner_tracker,
+            "tracker": st.tracker, "last_lga": st.last_lga,
             "outer_iteration": st.outer_iteration, "groups": st.groups,
             "solves": self.solves, "history": self.history,
             "fingerprint": self.fingerprint(),
@@ -567,7 +557,6 @@ class DICRL(InnerProcesses):
         self.state = LearnerState(
             cost_weights=sd["cost_weights"], eta=sd["eta"], eta_bar=sd["eta_bar"],
             tracker=sd["tracker"], last_lga=sd["last_lga"],
-            inner_tracker=sd.get("inner_tracker"),  # absent before the tracker was carried
             outer_iteration=int(sd["outer_iteration"]), groups=sd["groups"])
         self.solves, self.history = int(sd["solves"]), list(sd["history"])
         if "communicator" in sd and hasattr(self.comm, "load_state_dict"):
@@ -579,9 +568,7 @@ class DICRL(InnerProcesses):
         return (f"NL={self.n_learners} local={self.local} d={lm.cost_dim} lr={lm.reward_dim} "
                 f"K={self.K} steps={self.steps} rho={self.rho} prune={self.prune_accrued} "
                 f"inner={self.inner_method}:{self.inner_step} "
-                # the tracker carried across processes (a checkpoint from before restarts it)
-                + ("carried-tracker " if self.inner_method == "tracking" else "")
-                + f"m={self.m.tolist()} {lm.describe()}"
+                f"m={self.m.tolist()} {lm.describe()}"
                 + (" merged-stateful-inner" if self._merged_stateful else "")
                 + (f" {comm}" if (comm := getattr(self.comm, "describe", lambda: "")()) else ""))
 

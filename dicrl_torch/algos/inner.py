@@ -14,19 +14,13 @@ C-ICRL steps on), mixing over the inner graph ``W(k)``:
 - ``"tracking"``: the same steps, schedule and average, but adapt-then-combine with a
   tracker ``s`` of the average gradient::
 
-      η ← W (η − N_L α(k) s),   s ← W (s + g(η_new) − g(η_old))
+      η ← W (η − N_L α(k) s),   s ← W (s + g(η_new) − g(η_old)),   s(0) = g(η(0))
 
-  The tracker is carried from one outer iteration's process to the next, as gradient
-  tracking does for an objective that changes (here with ω_c): ``s(0) = s' + g(η(0)) −
-  g'``, with ``s'`` and ``g'`` where the process that warm-started η left them (the first
-  process: ``s(0) = g(η(0))``). Restarted at each learner's own gradient, the tracker
-  would be least mixed at ``k = 0``, where ``α(k)`` is largest, and on a graph connected
-  only over two rounds (``TimeVaryingSchedule``) the learners' first steps would follow
-  their own shards. The trackers' mean is the gradients' mean at every step (W doubly
-  stochastic), so the network takes C-ICRL's step ``α(k) Σ_v g^[v]``; on a complete
-  uniform W every learner's η is C-ICRL's iterate on the pooled shards (tested), on a
-  sparser W it is that up to the consensus error. A network of one runs Algorithm 2
-  itself (the same numbers, bit for bit, where the tracker would round ``s + g_new - g``).
+  The trackers' mean is the gradients' mean at every step (W doubly stochastic), so the
+  network takes C-ICRL's step ``α(k) Σ_v g^[v]``; on a complete uniform W every learner's
+  η is C-ICRL's iterate on the pooled shards (tested), on a sparser W it is that up to
+  the consensus error. A network of one runs Algorithm 2 itself (the same numbers,
+  bit for bit, where the tracker would round ``s + g_new - g``).
 - ``"gradient_tracking"`` (DIGing): ``η ← W η − inner_step · s``,
   ``s ← W s + g(η_new) − g(η_old)``, a constant step; the output is the final η.
 """
@@ -74,10 +68,6 @@ class InnerProcesses:
         acc = torch.zeros_like(eta)
         alpha_sum = 0.0
         g = s = self._gradients(eta, cost_weights, 0)
-        warm = self.state.inner_tracker
-        if warm is not None:  # [2, N_L, n, p]: (s, g) where η's warm start left them
-            u = getattr(self, "_process", 0)
-            s = warm[0, u] + g - warm[1, u]
         for k in range(self.K - 1):
             a = self.steps.alpha(k)
             acc += a * eta
@@ -90,7 +80,6 @@ class InnerProcesses:
                 s = self.comm.mix(s + g_new - g, W, "inner_tracker")
                 self._check_finite("The inner gradient tracker", s, k + 1, self._process)
                 g = g_new
-        self._tracker_left = torch.stack([s, g])  # [2, n, p], for the next process
         a = self.steps.alpha(self.K - 1)
         acc += a * eta
         alpha_sum += a
