@@ -4,6 +4,8 @@ points of ``experiments/`` (``train.py``, ``demo_foundation.py``, ``summarize.py
 root as a script, ``.venv/bin/python experiments/studies/NAME.py [args]``; its docstring
 gives examples and says what it prints.
 
+- ``bootstrap_certificate.py``: C-ICRL's certificate on resampled demonstrations of a
+  finished grid run (each refit trained from scratch, or ``--local`` from the warm start).
 - ``identifiability.py``: which true grid constraints the demonstrations determine
   (demonstrated / required / undetermined), time per candidate, and the likelihoods of
   alternative walls.
@@ -18,9 +20,9 @@ gives examples and says what it prints.
 - ``resolve_study.py``: re-solves on a finished SAC run's checkpoint (``prune``: visits of
   each freed feature; ``last-solve``: one learner's last solve with changed settings).
 
-``measure_planner``, ``prune_study`` and ``resolve_study`` build the task from a config as
-``train.py`` does, with ``experiments/common.py``: each puts ``experiments/`` on
-``sys.path`` itself (one line before ``from common import ...``), so it runs from any
-directory. The tests import them as ``studies.NAME`` (pytest's ``pythonpath`` holds
+``bootstrap_certificate``, ``measure_planner``, ``prune_study`` and ``resolve_study`` build
+the task from a config as ``train.py`` does, with ``experiments/common.py``: each puts
+``experiments/`` on ``sys.path`` itself (one line before ``from common import ...``), so it
+runs from any directory. The tests import them as ``studies.NAME`` (pytest's ``pythonpath`` holds
 ``experiments``).
 """
