@@ -63,7 +63,6 @@ def main(argv: list[str] | None = None) -> None:
             trainer = trained
             own_stats, own_bar = trainer.stats, trainer.state.eta_bar
             trainer.stats = [trainer.learner_model.statistics(data)]
-            trainer._process = 0
             bar, _ = trainer.inner_process(trainer.state.cost_weights[0], trainer.state.eta[0])
             trainer.stats, trainer.state.eta_bar = own_stats, bar  # certify with the refit's
             eta_bar = bar[0]
