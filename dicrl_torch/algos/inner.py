@@ -42,19 +42,17 @@ class InnerProcesses:
         if self.inner_method == "gradient_tracking":
             return self._inner_gradient_tracking(cost_weights, eta0)
         if self.inner_method == "tracking" and self.n_learners > 1:
-            return self._inner_tracking(cost_weights, eta0)
-        eta = eta0.clone()
-        acc = torch.zeros_like(eta)
-        alpha_sum = 0.0
-        for k in range(self.K):
+            return self._alpha_average(self._tracking_iterates(cost_weights, eta0))
+        return self._alpha_average(self._paper_iterates(cost_weights, eta0))
+
+    def _alpha_average(self, iterates) -> tuple[torch.Tensor, torch.Tensor]:
+        """Algorithm 2's output from the iterates η(0), ..., η(K-1) ``[n, p]``: their
+        α(k)-weighted average η̄ and the last."""
+        acc, alpha_sum = None, 0.0
+        for k, eta in enumerate(iterates):
             a = self.steps.alpha(k)
-            acc += a * eta
+            acc = (torch.zeros_like(eta) if acc is None else acc) + a * eta
             alpha_sum += a
-            if k == self.K - 1:
-                break
-            grads = self._gradients(eta, cost_weights, k)
-            eta = self.comm.mix(eta, self._inner_matrix(k), "eta") - a * grads
-            self._check_finite("η = [ω_r, λ]", eta, k, self._process)
         return acc / alpha_sum, eta
 
     def _gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor, k: int
@@ -63,27 +61,29 @@ class InnerProcesses:
         self._check_finite("The dual gradient m ∇G", grads, k, self._process)
         return grads
 
-    def _inner_tracking(self, cost_weights, eta0):
+    def _paper_iterates(self, cost_weights, eta0):
         eta = eta0.clone()
-        acc = torch.zeros_like(eta)
-        alpha_sum = 0.0
+        for k in range(self.K - 1):
+            yield eta
+            grads = self._gradients(eta, cost_weights, k)
+            eta = self.comm.mix(eta, self._inner_matrix(k), "eta") - self.steps.alpha(k) * grads
+            self._check_finite("η = [ω_r, λ]", eta, k, self._process)
+        yield eta
+
+    def _tracking_iterates(self, cost_weights, eta0):
+        eta = eta0.clone()
         g = s = self._gradients(eta, cost_weights, 0)
         for k in range(self.K - 1):
-            a = self.steps.alpha(k)
-            acc += a * eta
-            alpha_sum += a
+            yield eta
             W = self._inner_matrix(k)
-            eta = self.comm.mix(eta - (a * self.n_learners) * s, W, "eta")
+            eta = self.comm.mix(eta - (self.steps.alpha(k) * self.n_learners) * s, W, "eta")
             self._check_finite("η = [ω_r, λ]", eta, k, self._process)
             if k < self.K - 2:  # the last iterate needs no gradient
                 g_new = self._gradients(eta, cost_weights, k + 1)
                 s = self.comm.mix(s + g_new - g, W, "inner_tracker")
                 self._check_finite("The inner gradient tracker", s, k + 1, self._process)
                 g = g_new
-        a = self.steps.alpha(self.K - 1)
-        acc += a * eta
-        alpha_sum += a
-        return acc / alpha_sum, eta
+        yield eta
 
     def _inner_gradient_tracking(self, cost_weights, eta0):
         eta = eta0.clone()

@@ -6,12 +6,12 @@
 Each refit draws the pooled demonstrations with replacement (numpy's generator seeded by the
 refit number), trains C-ICRL from scratch on them with the run's settings, and certifies with
 its own reward, as the run's C-ICRL row does. Refit 0 keeps the data as they are: it trains
-the run's C-ICRL again (the same numbers: tested). ``--local`` instead runs one inner process from
-the trained C-ICRL's warm start on each resample (seconds, not minutes; too local to move the
-reward's direction, measured). RUN_DIR is a Hydra run directory of ``experiments/train.py``
-of a grid experiment with the certificate (its ``.hydra/config.yaml`` and ``checkpoint.pt``).
-Prints one JSON line per refit: the refit's η̄, its certified features, their FPR and
-the reward's RFD.
+the run's C-ICRL again (the same numbers: tested). ``--local`` instead runs one inner process
+from the trained C-ICRL's warm start on each resample and certifies that reward on the run's
+own data (seconds, not minutes; too local to move the reward's direction, measured).
+RUN_DIR is a Hydra run directory of ``experiments/train.py`` of a grid experiment with the
+certificate (its ``.hydra/config.yaml`` and ``checkpoint.pt``). Prints one JSON line per
+refit: the refit's η̄, its certified features, their FPR and the reward's RFD.
 """
 
 from __future__ import annotations
@@ -65,17 +65,15 @@ def main(argv: list[str] | None = None) -> None:
             trainer.stats = [trainer.learner_model.statistics(data)]
             bar, _ = trainer.inner_process(trainer.state.cost_weights[0], trainer.state.eta[0])
             trainer.stats, trainer.state.eta_bar = own_stats, bar  # certify with the refit's
-            eta_bar = bar[0]
-            task.before_evaluation(trainer)
-            row, _ = task.evaluate_learner(trainer, 0, progress=False)
-            trainer.state.eta_bar = own_bar
         else:
             trainer = make_trainer(task, trainer_spec(cfg), [data], SimulatedCommunicator(1),
                                    [m], stream=1, progress=False)
             trainer.train(int(cfg.algo.outer_iterations))
-            eta_bar = trainer.state.eta_bar[0]
-            task.before_evaluation(trainer)
-            row, _ = task.evaluate_learner(trainer, 0, progress=False)
+        eta_bar = trainer.state.eta_bar[0]
+        task.before_evaluation(trainer)
+        row, _ = task.evaluate_learner(trainer, 0, progress=False)
+        if args.local:
+            trainer.state.eta_bar = own_bar
         print(json.dumps({"refit": refit, "eta_bar": [round(x, 3) for x in eta_bar.tolist()],
                           "constraints": row["constraints"], "FPR": row["FPR"],
                           "RFD": row["RFD"],
