@@ -14,7 +14,12 @@ C-ICRL steps on), mixing over the inner graph ``W(k)``:
 - ``"tracking"``: the same steps, schedule and average, but adapt-then-combine with a
   tracker ``s`` of the average gradient::
 
-      η ← W (η − N_L α(k) s),   s ← W (s + g(η_new) − g(η_old)),   s(0) = g(η(0))
+      η ← W_k (η − N_L α(k) s),   s ← W_k (s + g(η_new) − g(η_old)),   s(0) = g(η(0))
+
+  where ``W_k = W(Bk + B − 1) ⋯ W(Bk)`` mixes over a window of the inner graph's period
+  ``B`` (``B`` exchanges a step; ``W_k = W(k)`` on a graph connected at every round). On
+  a time-varying graph no single round connects the learners, and a step combined over
+  one round leaves an isolated learner stepping ``N_L`` times its own gradient.
 
   The trackers' mean is the gradients' mean at every step (W doubly stochastic), so the
   network takes C-ICRL's step ``α(k) Σ_v g^[v]``; on a complete uniform W every learner's
@@ -70,17 +75,25 @@ class InnerProcesses:
             self._check_finite("η = [ω_r, λ]", eta, k, self._process)
         yield eta
 
+    def _mix_window(self, values: torch.Tensor, k: int, field: str) -> torch.Tensor:
+        """Step ``k``'s mixing over the rounds ``Bk, ..., Bk + B - 1`` of the inner graph
+        (``B`` its period), one exchange each: their product is strongly connected
+        (Assumption 1), so every step's combination reaches every learner."""
+        period = self.inner_schedule.period
+        for r in range(period * k, period * (k + 1)):
+            values = self.comm.mix(values, self._inner_matrix(r), field)
+        return values
+
     def _tracking_iterates(self, cost_weights, eta0):
         eta = eta0.clone()
         g = s = self._gradients(eta, cost_weights, 0)
         for k in range(self.K - 1):
             yield eta
-            W = self._inner_matrix(k)
-            eta = self.comm.mix(eta - (self.steps.alpha(k) * self.n_learners) * s, W, "eta")
+            eta = self._mix_window(eta - (self.steps.alpha(k) * self.n_learners) * s, k, "eta")
             self._check_finite("η = [ω_r, λ]", eta, k, self._process)
             if k < self.K - 2:  # the last iterate needs no gradient
                 g_new = self._gradients(eta, cost_weights, k + 1)
-                s = self.comm.mix(s + g_new - g, W, "inner_tracker")
+                s = self._mix_window(s + g_new - g, k, "inner_tracker")
                 self._check_finite("The inner gradient tracker", s, k + 1, self._process)
                 g = g_new
         yield eta
