@@ -9,7 +9,12 @@ import tiny_dicrl
 import torch
 
 from dicrl_torch.algos.dicrl import DICRL, StepSizes
-from dicrl_torch.comm import CompleteSchedule, SimulatedCommunicator
+from dicrl_torch.comm import (
+    CompleteSchedule,
+    MatrixSchedule,
+    SimulatedCommunicator,
+    TimeVaryingSchedule,
+)
 from dicrl_torch.demos.storage import Demonstrations
 
 
@@ -75,3 +80,26 @@ def test_a_network_of_one_runs_algorithm_2_bit_for_bit(tiny):
     tracking.train(2)
     for key in ("eta", "eta_bar", "cost_weights"):
         assert torch.equal(getattr(paper.state, key), getattr(tracking.state, key))
+
+
+def test_tracking_combines_each_step_over_a_window_of_the_period(tiny):
+    """On a period-2 graph (no round connects the 3 learners) tracking's step k mixes
+    rounds 2k and 2k+1: the same η̄ and ω_c as tracking over the schedule of window
+    products W(2k+1) W(2k) (period 1)."""
+    n = len(tiny_dicrl.SPLIT)
+    graph = TimeVaryingSchedule(n_learners=n, period=2)
+    products = MatrixSchedule([graph(2 * k + 1) @ graph(2 * k) for k in range(2)], period=1)
+    def connected(W):  # positive diagonal: strongly connected iff W^(n-1) > 0
+        return bool((torch.linalg.matrix_power((W > 0).double(), n - 1) > 0).all())
+    assert not connected(graph(0)) and not connected(graph(1)) and connected(products(0))
+    runs = {}
+    for name, schedule in (("window", graph), ("products", products)):
+        d = tiny_dicrl.make_trainer(tiny, inner=schedule, inner_method="tracking",
+                                    init_cost=0.3)
+        d.train(2)
+        runs[name] = d
+    for key in ("eta_bar", "eta", "cost_weights"):
+        a, b = getattr(runs["window"].state, key), getattr(runs["products"].state, key)
+        assert relative_gap(a, b) < 1e-12, key
+    assert relative_gap(runs["window"].state.eta_bar,
+                        runs["window"].state.eta_bar.mean(0)) > 1e-3  # still apart
