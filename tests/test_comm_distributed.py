@@ -46,8 +46,18 @@ COMM_TIMEOUT_S = 30.0  # generous: 3-4 processes start on a 2-core machine
 
 
 # ---------------------------------------------------------------------- the tiny instance
-def make_trainer(tiny, shards, communicator) -> DICRL:
-    return tiny_dicrl.make_trainer(tiny, shards=shards, communicator=communicator)
+def make_trainer(tiny, shards, communicator, **trainer_options) -> DICRL:
+    return tiny_dicrl.make_trainer(tiny, shards=shards, communicator=communicator,
+                                   **trainer_options)
+
+
+TRAINER_OPTIONS = ("inner_method",)
+
+
+def split_options(options: dict) -> tuple[dict, dict]:
+    """(communicator keywords, trainer keywords) from one option dict of plain values."""
+    trainer = {k: v for k, v in options.items() if k in TRAINER_OPTIONS}
+    return comm_options({k: v for k, v in options.items() if k not in trainer}), trainer
 
 
 def random_inputs(seed: int, n: int) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
@@ -102,10 +112,10 @@ def comm_options(options: dict) -> dict:
 
 def _trainer_body(rank, world_size, init_method, outer_iterations, options=None):
     tiny = build_tiny()
-    with _comm(rank, world_size, init_method, record=True,
-               **comm_options(options or {})) as comm:
+    comm_kw, trainer_kw = split_options(options or {})
+    with _comm(rank, world_size, init_method, record=True, **comm_kw) as comm:
         comm.check_same_config(f"tiny split={SPLIT} K=3 alpha_bar=0.02 rho=10")
-        t = make_trainer(tiny, [shard_for_rank(tiny[3], rank)], comm)
+        t = make_trainer(tiny, [shard_for_rank(tiny[3], rank)], comm, **trainer_kw)
         t.train(outer_iterations)
         st = t.state
         return {"cost_weights": st.cost_weights[0], "eta_bar": st.eta_bar[0],
@@ -233,20 +243,23 @@ def test_trainer_trajectories_are_identical(trainer_runs):
 
 
 # int8 messages of every mixed field and no redundant ω_c gather (the point-to-point
-# transport of compressed messages); inner links that fail (realised alike everywhere)
+# transport of compressed messages); inner links that fail (realised alike everywhere);
+# the tracking inner process (two exchanges a step over the period-2 graph, a tracker)
 OPTIONS = {"int8": {"bits": 8, "skip_redundant_rounds": True},
-           "failing_links": {"link_failure": 0.3, "link_seed": 1}}
+           "failing_links": {"link_failure": 0.3, "link_seed": 1},
+           "tracking": {"inner_method": "tracking"}}
 
 
 # Failing links on spawned processes are the slow suite's: int8 exercises the same
 # exchange path, and failing links are checked against their own truth in test_comm_traffic.
 @pytest.fixture(scope="module", params=[
-    "int8", pytest.param("failing_links", marks=pytest.mark.slow)])
+    "int8", "tracking", pytest.param("failing_links", marks=pytest.mark.slow)])
 def option_runs(request):
     tiny = build_tiny()
     options = OPTIONS[request.param]
+    comm_kw, trainer_kw = split_options(options)
     sim = make_trainer(tiny, tiny[3], SimulatedCommunicator(
-        len(SPLIT), record=True, **comm_options(options)))
+        len(SPLIT), record=True, **comm_kw), **trainer_kw)
     sim.train(3)
     return sim, spawn_learners(_trainer_body, len(SPLIT), args=(3, options), timeout_s=180)
 
