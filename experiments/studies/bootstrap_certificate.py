@@ -46,6 +46,12 @@ def resample(demos: Demonstrations, refit: int) -> Demonstrations:
                           n_cells=demos.n_cells, n_actions=demos.n_actions)
 
 
+def certify(task, trainer) -> dict:
+    """The table row of ``trainer``'s only learner, its certificate included."""
+    task.before_evaluation(trainer)
+    return task.evaluate_learner(trainer, 0, progress=False)[0]
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path)
@@ -62,18 +68,20 @@ def main(argv: list[str] | None = None) -> None:
         if args.local:
             trainer = trained
             own_stats, own_bar = trainer.stats, trainer.state.eta_bar
-            trainer.stats = [trainer.learner_model.statistics(data)]
-            bar, _ = trainer.inner_process(trainer.state.cost_weights[0], trainer.state.eta[0])
-            trainer.stats, trainer.state.eta_bar = own_stats, bar  # certify with the refit's
+            try:
+                trainer.stats = [trainer.learner_model.statistics(data)]
+                bar, _ = trainer.inner_process(trainer.state.cost_weights[0],
+                                               trainer.state.eta[0])
+                trainer.stats, trainer.state.eta_bar = own_stats, bar  # the refit's reward
+                row = certify(task, trainer)
+            finally:  # the next refit starts from the trained C-ICRL again
+                trainer.stats, trainer.state.eta_bar = own_stats, own_bar
+            eta_bar = bar[0]
         else:
             trainer = make_trainer(task, trainer_spec(cfg), [data], SimulatedCommunicator(1),
                                    [m], stream=1, progress=False)
             trainer.train(int(cfg.algo.outer_iterations))
-        eta_bar = trainer.state.eta_bar[0]
-        task.before_evaluation(trainer)
-        row, _ = task.evaluate_learner(trainer, 0, progress=False)
-        if args.local:
-            trainer.state.eta_bar = own_bar
+            row, eta_bar = certify(task, trainer), trainer.state.eta_bar[0]
         print(json.dumps({"refit": refit, "eta_bar": [round(x, 3) for x in eta_bar.tolist()],
                           "constraints": row["constraints"], "FPR": row["FPR"],
                           "RFD": row["RFD"],
