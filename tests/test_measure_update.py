@@ -1,4 +1,4 @@
-"""experiments/studies/measure_update.py times the same update three ways: its ensemble
+"""experiments/studies/measure_update.py times the same update several ways: its ensemble
 critics must compute what the separate critics compute (else the comparison is of two
 networks), and its Polyak step is SB3's arithmetic (as DecomposedSAC's)."""
 
@@ -27,13 +27,13 @@ def test_the_ensemble_critics_are_the_separate_critics_batched():
 
 def test_every_kind_runs_an_update_and_reports(capsys, monkeypatch):
     monkeypatch.setattr(sys, "argv", ["measure_update", "--kinds", "separate", "ensemble",
-                                      "--updates", "3", "--repeat", "1"])
+                                      "lean", "--updates", "3", "--repeat", "1"])
     measure_update.main()
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
-    assert [line["kind"] for line in lines] == ["separate", "ensemble"]
+    assert [line["kind"] for line in lines] == ["separate", "ensemble", "lean"]
     assert all(line["ms_per_update"] > 0 for line in lines)
     # An update trains both networks (it is not a no-op that would time as fast).
-    for kind in ("separate", "ensemble"):  # compile needs a C++ compiler: not in the suite
+    for kind in ("separate", "ensemble", "lean"):  # compile needs a C++ compiler: not here
         update = measure_update.make_update(kind, 2)
         before = [p.detach().clone() for p in (*update.actor.parameters(),
                                                 *update.critic.parameters())]

@@ -1,9 +1,11 @@
-"""Time one SAC gradient update of the drone solver's shapes, three ways (docs/drones.md,
-"Where a SAC update's time goes").
+"""Time one SAC gradient update of the drone solver's shapes, several ways
+(docs/performance.md, "The SAC solver").
 
     .venv/bin/python experiments/studies/measure_update.py           # separate, ensemble
     .venv/bin/python experiments/studies/measure_update.py \\
         --kinds separate ensemble compile separate
+    .venv/bin/python experiments/studies/measure_update.py \\
+        --kinds lean lean_compile lean lean_compile --columns 3
 
 The update is ``DecomposedSAC.train``'s arithmetic as a plain loop, without SB3 or a replay
 buffer: batch 256, a 64x64 squashed-Gaussian actor, two 64x64 critics of ``--columns`` soft-Q
@@ -11,11 +13,16 @@ columns (one per drone), fused Adam, Polyak targets (on all tensors at once, as
 ``DecomposedSAC.train`` does; the same bits as SB3's ``polyak_update``), ``--threads`` torch
 threads (1). The kinds:
 
-- ``separate``: the two critics as two ``nn.Sequential`` (as shipped);
+- ``separate``: the two critics as two ``nn.Sequential`` (as SB3's loop builds them);
 - ``ensemble``: the two critics as one network whose layers are ``baddbmm`` over a leading
   axis of 2 (one kernel per layer for both);
 - ``compile``: ``separate`` with the three loss computations through ``torch.compile``
-  (the first updates include the compilation, reported apart).
+  (the first updates include the compilation, reported apart);
+- ``lean``: the shipped update, :class:`~dicrl_torch.solvers.sac.update.EnsembleSAC` of one
+  learner (its critics' ``G`` columns are ``--columns``);
+- ``lean_compile``: ``lean`` with the actor's and the critics' forward passes through
+  ``torch.compile`` (AOTAutograd compiles their backward too; Adam and the Polyak step stay
+  eager: ``torch._fused_adam_`` cannot be traced).
 
 Prints one JSON line per kind, in the order given (repeat a kind to alternate them): the
 median over ``--repeat`` runs of ``--updates`` updates, in ms per update. The inputs are
@@ -34,6 +41,7 @@ import torch
 from torch import nn
 
 from dicrl_torch.solvers.sac.decomposed import squashed_gaussian_sample
+from dicrl_torch.solvers.sac.update import Batch, EnsembleSAC
 
 BATCH, OBS, ACT, HIDDEN = 256, 8, 4, 64
 
@@ -97,9 +105,30 @@ class EnsembleCritics(nn.Module):
         return x
 
 
+def make_lean_update(compiled: bool, columns: int, alpha: float = 0.1, gamma: float = 0.99,
+                     tau: float = 0.02):
+    """The shipped ensemble update of one learner, with :func:`make_update`'s signature."""
+    sac = EnsembleSAC(obs_dim=OBS, action_dim=ACT, hidden=(HIDDEN, HIDDEN), n_rewards=columns,
+                      generators=[torch.Generator().manual_seed(0)], learning_rate=1e-3,
+                      gamma=gamma, ent_coef=alpha, tau=tau)
+    if compiled:
+        sac.critic.forward_with = torch.compile(sac.critic.forward_with)
+        sac.actor.dist_params = torch.compile(sac.actor.dist_params)
+
+    def update(obs, act, rewards, next_obs, dones):
+        sac.update(Batch(obs=obs[None], actions=act[None], rewards=rewards[None],
+                         next_obs=next_obs[None], dones=dones[None]),
+                   torch.randn(1, 2, obs.shape[0], ACT))
+
+    update.actor, update.critic = sac.actor, sac.critic
+    return update
+
+
 def make_update(kind: str, columns: int, alpha: float = 0.1, gamma: float = 0.99,
                 tau: float = 0.02):
     """One SAC update ``(obs, act, rewards [B, columns], next_obs, dones) -> None``."""
+    if kind in ("lean", "lean_compile"):
+        return make_lean_update(kind == "lean_compile", columns, alpha, gamma, tau)
     actor = Actor()
     critic_cls = EnsembleCritics if kind == "ensemble" else SeparateCritics
     critic, target = critic_cls(columns), critic_cls(columns)
@@ -150,7 +179,7 @@ def batch(columns: int) -> tuple[torch.Tensor, ...]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--kinds", nargs="+", default=["separate", "ensemble"],
-                        choices=["separate", "ensemble", "compile"])
+                        choices=["separate", "ensemble", "compile", "lean", "lean_compile"])
     parser.add_argument("--updates", type=int, default=200)
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--columns", type=int, default=2)
