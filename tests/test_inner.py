@@ -1,5 +1,7 @@
 """The inner processes (``dicrl_torch.algos.inner``) against C-ICRL's on the pooled
-shards: tracking makes the network take C-ICRL's step, Algorithm 2 a 1/N_L of it."""
+shards, C-ICRL stepping as a run steps it (``TrainerSpec``: ᾱ / N_L, the network average of
+Algorithm 2's steps): tracking keeps every learner on that iterate, Algorithm 2 only their
+mean."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from dicrl_torch.comm import (
     TimeVaryingSchedule,
 )
 from dicrl_torch.demos.storage import Demonstrations
+from dicrl_torch.runs.runner import TrainerSpec
 
 
 @pytest.fixture(scope="module")
@@ -23,8 +26,19 @@ def tiny():
     return tiny_dicrl.build_tiny()
 
 
-def c_icrl(tiny, inner_method: str = "paper", inner_steps: int = 3) -> DICRL:
-    """C-ICRL: one learner holding every shard, the tiny trainer's settings."""
+def run_steps(n_learners: int) -> StepSizes:
+    """A run's step sizes for a trainer of ``n_learners`` (C-ICRL: 1) when the distributed
+    learners step with the tiny trainer's ᾱ = 0.02."""
+    spec = TrainerSpec(schedules=lambda n: (CompleteSchedule(n_learners=n),) * 2,
+                       steps=StepSizes(alpha_bar=0.02), inner_step=0.01,
+                       n_shards=len(tiny_dicrl.SPLIT))
+    return spec.kwargs(n_learners)["steps"]
+
+
+def c_icrl(tiny, inner_method: str = "paper", inner_steps: int = 3,
+           steps: StepSizes | None = None) -> DICRL:
+    """C-ICRL: one learner holding every shard, the tiny trainer's settings but ``steps``
+    (default: the tiny trainer's ᾱ, unscaled)."""
     solver, rb, cb, shards = tiny
     pooled = Demonstrations(states=np.concatenate([s.states for s in shards]),
                             actions=np.concatenate([s.actions for s in shards]),
@@ -34,7 +48,7 @@ def c_icrl(tiny, inner_method: str = "paper", inner_steps: int = 3) -> DICRL:
                  communicator=SimulatedCommunicator(1),
                  inner_schedule=CompleteSchedule(n_learners=1),
                  outer_schedule=CompleteSchedule(n_learners=1), init_cost_weights=0.3,
-                 steps=StepSizes(alpha_bar=0.02), inner_steps=inner_steps,
+                 steps=steps or StepSizes(alpha_bar=0.02), inner_steps=inner_steps,
                  lsca_curvature=10.0, inner_method=inner_method)
 
 
@@ -43,9 +57,10 @@ def relative_gap(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def test_tracking_on_a_complete_graph_is_c_icrl_on_the_pooled_shards(tiny):
-    """Every learner's η̄ after the first inner process is C-ICRL's (to rounding); under
-    Algorithm 2 the network's step is a third of it (N_L = 3), and η̄ far from it."""
-    c = c_icrl(tiny)
+    """Every learner's η̄ after the first inner process is C-ICRL's as a run steps it (to
+    rounding); under Algorithm 2 each learner also moves by its own shard's step, and its
+    η̄ is apart from it."""
+    c = c_icrl(tiny, steps=run_steps(1))
     c.train(1)
     n = len(tiny_dicrl.SPLIT)
     rows = {}
@@ -59,19 +74,25 @@ def test_tracking_on_a_complete_graph_is_c_icrl_on_the_pooled_shards(tiny):
     assert relative_gap(rows["paper"], want) > 1e-2
 
 
-def test_tracking_keeps_the_network_on_c_icrls_step_over_a_sparse_graph(tiny):
+def test_both_methods_step_the_network_as_c_icrl_and_tracking_keeps_it_together(tiny):
     """One step (K = 2) over the time-varying graph, where no W(0) connects the learners:
-    their mean η̄ is C-ICRL's, since W is doubly stochastic; not so under Algorithm 2."""
-    c = c_icrl(tiny, inner_steps=2)
+    under either method their mean η̄ is C-ICRL's as a run steps it (W doubly stochastic,
+    C-ICRL's ᾱ / N_L), and a run's C-ICRL at the learners' own ᾱ would step N_L times
+    further. Tracking's learners step on the mixed gradients, so they stay closer to that
+    mean than Algorithm 2's, which step on their own shard's."""
+    c = c_icrl(tiny, inner_steps=2, steps=run_steps(1))
     c.train(1)
-    means = {}
+    c_unscaled = c_icrl(tiny, inner_steps=2)
+    c_unscaled.train(1)
+    spread = {}
     for method in ("tracking", "paper"):
         d = tiny_dicrl.make_trainer(tiny, inner_method=method, init_cost=0.3, inner_steps=2)
         d.train(1)
-        assert relative_gap(d.state.eta_bar, d.state.eta_bar.mean(0)) > 1e-3  # apart
-        means[method] = d.state.eta_bar.mean(0, keepdim=True)
-    assert relative_gap(means["tracking"], c.state.eta_bar) < 1e-12
-    assert relative_gap(means["paper"], c.state.eta_bar) > 1e-2
+        mean = d.state.eta_bar.mean(0, keepdim=True)
+        assert relative_gap(mean, c.state.eta_bar) < 1e-12, method
+        assert relative_gap(mean, c_unscaled.state.eta_bar) > 1e-2, method
+        spread[method] = float((d.state.eta_bar - mean).abs().max())
+    assert 0 < spread["tracking"] < 0.75 * spread["paper"]
 
 
 def test_a_network_of_one_runs_algorithm_2_bit_for_bit(tiny):

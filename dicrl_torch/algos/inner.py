@@ -8,24 +8,27 @@ C-ICRL steps on), mixing over the inner graph ``W(k)``:
 
 - ``"paper"`` (Algorithm 2): ``η ← W η − α(k) g``, ``α(k) = ᾱ / (k + 1)``, output the
   α-weighted average ``η̄ = Σ_k α(k) η(k) / Σ_k α(k)``. Mixing moves the learners'
-  average by the mean of their steps, ``α(k) Σ_v g^[v] / N_L``: a ``1 / N_L`` of C-ICRL's
-  step on the same data. Each learner's own iterate moves by its own step
-  ``α(k) g^[v]``, fitted to its shard alone.
+  average by the mean of their steps, ``α(k) Σ_v g^[v] / N_L``, which is C-ICRL's step as
+  a run sets it (one learner with every trajectory at ``ᾱ / N_L``: ``TrainerSpec``). Each
+  learner's own iterate, though, moves by its own shard's step ``α(k) g^[v]``: where the
+  shards' gradients disagree (varied starts) the learners scatter round that mean, and
+  each one's η̄ averages its own iterates.
 - ``"tracking"``: the same steps, schedule and average, but adapt-then-combine with a
   tracker ``s`` of the average gradient::
 
-      η ← W_k (η − N_L α(k) s),   s ← W_k (s + g(η_new) − g(η_old)),   s(0) = g(η(0))
+      η ← W_k (η − α(k) s),   s ← W_k (s + g(η_new) − g(η_old)),   s(0) = g(η(0))
 
   where ``W_k = W(Bk + B − 1) ⋯ W(Bk)`` mixes over a window of the inner graph's period
   ``B`` (``B`` exchanges a step; ``W_k = W(k)`` on a graph connected at every round). On
   a time-varying graph no single round connects the learners, and a step combined over
-  one round leaves an isolated learner stepping ``N_L`` times its own gradient.
+  one round leaves an isolated learner stepping on its own gradient alone.
 
   The trackers' mean is the gradients' mean at every step (W doubly stochastic), so the
-  network takes C-ICRL's step ``α(k) Σ_v g^[v]``; on a complete uniform W every learner's
-  η is C-ICRL's iterate on the pooled shards (tested), on a sparser W it is that up to
-  the consensus error. A network of one runs Algorithm 2 itself (the same numbers,
-  bit for bit, where the tracker would round ``s + g_new - g``).
+  network takes Algorithm 2's step, C-ICRL's; every learner steps on the mixed estimate of
+  the average gradient instead of its own. On a complete uniform W every learner's η is
+  C-ICRL's iterate on the pooled shards (tested), on a sparser W it is that up to the
+  consensus error. A network of one runs Algorithm 2 itself (the same numbers, bit for
+  bit, where the tracker would round ``s + g_new - g``).
 - ``"gradient_tracking"`` (DIGing): ``η ← W η − inner_step · s``,
   ``s ← W s + g(η_new) − g(η_old)``, a constant step; the output is the final η.
 """
@@ -89,7 +92,7 @@ class InnerProcesses:
         g = s = self._gradients(eta, cost_weights, 0)
         for k in range(self.K - 1):
             yield eta
-            eta = self._mix_window(eta - (self.steps.alpha(k) * self.n_learners) * s, k, "eta")
+            eta = self._mix_window(eta - self.steps.alpha(k) * s, k, "eta")
             self._check_finite("η = [ω_r, λ]", eta, k, self._process)
             if k < self.K - 2:  # the last iterate needs no gradient
                 g_new = self._gradients(eta, cost_weights, k + 1)
