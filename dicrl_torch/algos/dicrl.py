@@ -184,7 +184,8 @@ class DICRL(InnerProcesses):
             learner's solver trains through all N_L processes (N_L (K - 1) solves per
             outer iteration, where C-ICRL takes K - 1): merged, fewer updates, other
             numbers.
-        inner_method: ``"paper"`` (Algorithm 2), ``"tracking"`` or
+        inner_method: ``"paper"`` (Algorithm 2, the default here), ``"tracking"`` (the
+            configs' default: Algorithm 2's steps on a tracked average gradient) or
             ``"gradient_tracking"`` (constant ``inner_step``): :mod:`~.inner`.
         callbacks: :class:`~dicrl_torch.algos.callbacks.TrainerCallback` s called during
             :meth:`train` (logging, checkpoints, evaluation, stopping), before those
