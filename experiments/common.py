@@ -53,6 +53,7 @@ GRID_TASK_KEYS = {
     "certificate_temperature": "algo.certificate.temperature",
     "certificate_min_probability": "algo.certificate.min_probability",
     "certificate_network": "algo.certificate.network",
+    "certificate_shard_fits": "algo.certificate.shard_fits",
     "threshold": "algo.threshold", "prune_min_gain": "algo.prune_min_gain",
     "baselines": "baselines.run", "baseline_epsilon": "baselines.epsilon",
     "baseline_max_constraints": "baselines.max_constraints"}

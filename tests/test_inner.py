@@ -124,3 +124,25 @@ def test_tracking_combines_each_step_over_a_window_of_the_period(tiny):
         assert relative_gap(a, b) < 1e-12, key
     assert relative_gap(runs["window"].state.eta_bar,
                         runs["window"].state.eta_bar.mean(0)) > 1e-3  # still apart
+
+
+def test_shard_fits_are_each_learner_alone_from_its_trained_state(tiny):
+    """``shard_fits`` is, for each learner, a network of one holding its shard alone
+    (Algorithm 2 with W = I, the learners' own ᾱ) run from its trained η̄ and ω_c; the
+    trainer's state is left as it was."""
+    solver, rb, cb, shards = tiny
+    d = tiny_dicrl.make_trainer(tiny, inner_method="tracking", init_cost=0.3)
+    d.train(2)
+    before = {k: getattr(d.state, k).clone() for k in ("eta", "eta_bar", "cost_weights")}
+    fits = d.shard_fits()
+    for k, v in before.items():
+        assert torch.equal(getattr(d.state, k), v), k
+    for i, (shard, m) in enumerate(zip(shards, tiny_dicrl.SPLIT, strict=True)):
+        alone = DICRL(solver=solver, reward_basis=rb, cost_basis=cb, shards=[shard],
+                      trajectory_counts=[m], communicator=SimulatedCommunicator(1),
+                      inner_schedule=CompleteSchedule(n_learners=1),
+                      outer_schedule=CompleteSchedule(n_learners=1),
+                      steps=StepSizes(alpha_bar=0.02), inner_steps=3, lsca_curvature=10.0)
+        want, _ = alone.inner_process(d.state.cost_weights[i], d.state.eta_bar[i:i + 1])
+        assert relative_gap(fits[i:i + 1], want) < 1e-12, i
+    assert relative_gap(fits, d.state.eta_bar) > 1e-3  # the shards pull them apart

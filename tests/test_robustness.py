@@ -93,6 +93,7 @@ def test_every_shipped_config_passes_the_checks(group, option):
     ("algo.inner_method=newton", "algo.inner_method", "gradient_tracking"),
     ("algo.run_c_icrl=maybe", "algo.run_c_icrl", "true or false"),
     ("algo.merge_stateful_inner=maybe", "algo.merge_stateful_inner", "true or false"),
+    ("algo.certificate.shard_fits=maybe", "algo.certificate.shard_fits", "true or false"),
     ("eval_episodes=0", "eval_episodes", "int >= 1"),
     ("checkpoint_every=0", "checkpoint_every", "int >= 1"),
     ("seed=-1", "seed", "int >= 0"),

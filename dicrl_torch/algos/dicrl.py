@@ -351,10 +351,12 @@ class DICRL(InnerProcesses):
     # ------------------------------------------------------------------ inner process
     def _scaled_gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor,
                           k: int) -> torch.Tensor:
-        """``m^[v] ∇G^[v](η^[v]; ω_c)`` of every local learner: ``[n, p]``."""
-        solutions = self.solve_all(eta, cost_weights.expand(len(self.stats), -1))
-        grads = torch.stack([dual_gradient(sol, st, cost_weights)
-                             for sol, st in zip(solutions, self.stats, strict=True)])
+        """``m^[v] ∇G^[v](η^[v]; ω_c)`` of every local learner: ``[n, p]``; ``cost_weights``
+        ``[d]`` (the running process's) or ``[n, d]`` (each learner's own)."""
+        cost_all = cost_weights.expand(len(self.stats), -1)
+        solutions = self.solve_all(eta, cost_all)
+        grads = torch.stack([dual_gradient(sol, st, w) for sol, st, w
+                             in zip(solutions, self.stats, cost_all, strict=True)])
         for cb in self._active:
             cb.on_inner_gradients(self, learners=self._log_rows,
                                   step=self.state.outer_iteration * self.K + k,

@@ -63,6 +63,23 @@ class InnerProcesses:
             alpha_sum += a
         return acc / alpha_sum, eta
 
+    def shard_fits(self) -> torch.Tensor:
+        """Each local learner's inner process on its own shard alone, from its trained η̄
+        and ω_c: Algorithm 2 with no neighbours (``W = I``), ``K - 1`` steps of
+        ``α(k) m^[v] ∇G^[v]`` and their α-weighted average, ``[n, p]``. Where the shards
+        disagree, these rewards differ as the learners' own data pull them; nothing is
+        exchanged and the trainer's state is unchanged."""
+        cost_weights = self.state.cost_weights
+
+        def iterates():
+            eta = self.state.eta_bar.clone()
+            for k in range(self.K - 1):
+                yield eta
+                eta = eta - self.steps.alpha(k) * self._gradients(eta, cost_weights, k)
+            yield eta
+
+        return self._alpha_average(iterates())[0]
+
     def _gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor, k: int
                    ) -> torch.Tensor:
         grads = self._scaled_gradients(eta, cost_weights, k)

@@ -201,6 +201,10 @@ class GridTask(GridRegionScoring, Task):
             are the features no learner's shard accrues, and each must be required under
             every learner's η̄ (:meth:`before_evaluation` exchanges the bitmasks and η̄);
             False: the learner's own shard and η̄ alone.
+        certificate_shard_fits: with the network's certificate, each feature must also be
+            required under every learner's own-shard fit (``DICRL.shard_fits``: its inner
+            process alone from its η̄), exchanged with the η̄: learners whose η̄ agree
+            still ask what each shard's own data say.
         threshold: ``ω_c,j >= threshold`` marks a learned constraint (threshold rule).
         prune_min_gain: prune learned constraints the data does not need (nats per
             trajectory), or None to keep them all (threshold rule).
@@ -224,7 +228,8 @@ class GridTask(GridRegionScoring, Task):
                  constraint_rule: str = "certificate",
                  certificate_temperature: float = CERTIFICATE_TEMPERATURE,
                  certificate_min_probability: float = CERTIFICATE_MIN_PROBABILITY,
-                 certificate_network: bool = True, threshold: float = 0.5,
+                 certificate_network: bool = True, certificate_shard_fits: bool = False,
+                 threshold: float = 0.5,
                  prune_min_gain: float | None = None,
                  baselines: Sequence[str] = (), baseline_epsilon: float | None = None,
                  baseline_max_constraints: int | None = None) -> None:
@@ -233,7 +238,8 @@ class GridTask(GridRegionScoring, Task):
             expert_temperature=expert_temperature, constraint_rule=constraint_rule,
             certificate_temperature=certificate_temperature,
             certificate_min_probability=certificate_min_probability,
-            certificate_network=certificate_network, threshold=threshold,
+            certificate_network=certificate_network,
+            certificate_shard_fits=certificate_shard_fits, threshold=threshold,
             prune_min_gain=prune_min_gain, baselines=baselines,
             baseline_epsilon=baseline_epsilon, baseline_max_constraints=baseline_max_constraints)
         self.layout, self.model, self.solver = layout, model, solver
@@ -250,6 +256,7 @@ class GridTask(GridRegionScoring, Task):
         self.certificate = {"temperature": s.certificate_temperature,
                             "min_probability": s.certificate_min_probability,
                             "network": s.certificate_network,
+                            "shard_fits": s.certificate_shard_fits and s.certificate_network,
                             # overlapping features asked about their own support (rows
                             # from before it are evaluated again on resume)
                             "open_overlaps": True}
@@ -354,13 +361,17 @@ class GridTask(GridRegionScoring, Task):
         self._also_demonstrated = trainer.network_or(masks)
         self._network_rewards = trainer.comm.all_gather(  # ω_r of η̄, without λ: [N_L, l_r]
             trainer.state.eta_bar[:, :-1].contiguous(), "eta", phase="outer")
+        if self.certificate["shard_fits"]:  # and each learner's own-shard fit: [2 N_L, l_r]
+            fits = trainer.comm.all_gather(trainer.shard_fits()[:, :-1].contiguous(), "eta",
+                                           phase="outer")
+            self._network_rewards = torch.cat([self._network_rewards, fits])
 
     def _other_rewards(self, trainer: DICRL, i: int) -> list:
         """The other learners' learned rewards (:meth:`before_evaluation`), for local
         learner ``i``'s certificate; none without the network's certificate."""
         if self._network_rewards is None:
             return []
-        own = trainer.local[i]
+        own = trainer.local[i]  # its η̄ is the certificate's own reward; its fit is not
         basis = self.reward_basis()
         return [basis.weighted(w) for v, w in enumerate(self._network_rewards) if v != own]
 

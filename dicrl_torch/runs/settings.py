@@ -130,6 +130,7 @@ class GridSettings:
     certificate_temperature: float
     certificate_min_probability: float
     certificate_network: bool
+    certificate_shard_fits: bool
     threshold: float
     prune_min_gain: float | None
     baselines: Sequence[str]
@@ -157,6 +158,8 @@ class GridSettings:
                 why="per-trajectory probability that certifies a feature"),
             certificate_network=setting_bool("certificate_network",
                                              self.certificate_network),
+            certificate_shard_fits=setting_bool("certificate_shard_fits",
+                                                self.certificate_shard_fits),
             threshold=check_threshold(self.threshold),
             prune_min_gain=setting_number("prune_min_gain", self.prune_min_gain, low=0,
                                           example=0.001, none="keep every constraint",
