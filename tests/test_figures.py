@@ -267,10 +267,11 @@ def test_tiny_run_records_the_curves_and_writes_the_figures(tmp_path):
             assert hist[-1]["RFD"][i] == row["RFD"]
             assert isinstance(row["constraints"], list)
     # each D-learner's traffic: its row's total is its history's last count and the
-    # certificate's two gathers to the other learner (the bitmask of d cost features in
-    # 52-bit words; the reward weights of η̄, 2 per expert)
+    # certificate's gathers to the other learner (the bitmask of d cost features in
+    # 52-bit words; the reward weights of η̄, 2 per expert, and of its shard's own fit)
     d = len(res["history"]["D-ICRL"][-1]["cost_weights"][0])
-    reward_dim = 2 * res["config"]["env"]["layout"]["n_experts"]
+    rewards = 1 + bool(res["config"]["algo"]["certificate"]["shard_fits"])
+    reward_dim = rewards * 2 * res["config"]["env"]["layout"]["n_experts"]
     for i, row in enumerate(res["methods"]["D-ICRL"]["learners"]):
         sent = [h["bytes_sent"][i] for h in res["history"]["D-ICRL"]]
         assert sent == sorted(sent) and sent[0] > 0
