@@ -69,16 +69,8 @@ class InnerProcesses:
         ``α(k) m^[v] ∇G^[v]`` and their α-weighted average, ``[n, p]``. Where the shards
         disagree, these rewards differ as the learners' own data pull them; nothing is
         exchanged and the trainer's state is unchanged."""
-        cost_weights = self.state.cost_weights
-
-        def iterates():
-            eta = self.state.eta_bar.clone()
-            for k in range(self.K - 1):
-                yield eta
-                eta = eta - self.steps.alpha(k) * self._gradients(eta, cost_weights, k)
-            yield eta
-
-        return self._alpha_average(iterates())[0]
+        return self._alpha_average(self._paper_iterates(
+            self.state.cost_weights, self.state.eta_bar, mix=False))[0]
 
     def _gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor, k: int
                    ) -> torch.Tensor:
@@ -86,12 +78,16 @@ class InnerProcesses:
         self._check_finite("The dual gradient m ∇G", grads, k, self._process)
         return grads
 
-    def _paper_iterates(self, cost_weights, eta0):
+    def _paper_iterates(self, cost_weights, eta0, mix: bool = True):
+        """Algorithm 2's iterates; ``mix=False``: each learner alone (``W = I``, nothing
+        sent); ``cost_weights`` ``[d]`` or ``[n, d]``."""
         eta = eta0.clone()
         for k in range(self.K - 1):
             yield eta
             grads = self._gradients(eta, cost_weights, k)
-            eta = self.comm.mix(eta, self._inner_matrix(k), "eta") - self.steps.alpha(k) * grads
+            if mix:
+                eta = self.comm.mix(eta, self._inner_matrix(k), "eta")
+            eta = eta - self.steps.alpha(k) * grads
             self._check_finite("η = [ω_r, λ]", eta, k, self._process)
         yield eta
 
