@@ -146,3 +146,27 @@ def test_shard_fits_are_each_learner_alone_from_its_trained_state(tiny):
         want, _ = alone.inner_process(d.state.cost_weights[i], d.state.eta_bar[i:i + 1])
         assert relative_gap(fits[i:i + 1], want) < 1e-12, i
     assert relative_gap(fits, d.state.eta_bar) > 1e-3  # the shards pull them apart
+
+
+def test_c_icrl_fits_on_its_folds_are_the_learners_fits_from_its_reward(tiny):
+    """C-ICRL (one learner pooling the shards, stepping at ᾱ / N_L as a run does) asked for
+    fits on the shards gives, for each, the fit that shard's learner makes from the same
+    η̄ and ω_c; the C-ICRL trainer's state is left as it was. A network's trainer is
+    refused folds (its learners fit their own shards)."""
+    solver, rb, cb, shards = tiny
+    c = c_icrl(tiny, steps=run_steps(1))
+    c.train(2)
+    before = {k: getattr(c.state, k).clone() for k in ("eta", "eta_bar", "cost_weights")}
+    fits = c.shard_fits(folds=shards)
+    for k, v in before.items():
+        assert torch.equal(getattr(c.state, k), v), k
+    n = len(tiny_dicrl.SPLIT)
+    d = tiny_dicrl.make_trainer(tiny, inner_method="tracking")
+    d.state.eta_bar = c.state.eta_bar.expand(n, -1).clone()
+    d.state.cost_weights = c.state.cost_weights.expand(n, -1).clone()
+    want = d.shard_fits()
+    assert fits.shape == want.shape == (n, rb.dim + 1)
+    assert relative_gap(fits, want) < 1e-12
+    assert relative_gap(fits, c.state.eta_bar.expand(n, -1)) > 1e-3  # the folds pull apart
+    with pytest.raises(ValueError, match="one learner holding every shard"):
+        d.shard_fits(folds=shards)

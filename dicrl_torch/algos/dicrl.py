@@ -350,18 +350,22 @@ class DICRL(InnerProcesses):
 
     # ------------------------------------------------------------------ inner process
     def _scaled_gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor,
-                          k: int) -> torch.Tensor:
+                          k: int, stats: list | None = None,
+                          m: torch.Tensor | None = None) -> torch.Tensor:
         """``m^[v] ∇G^[v](η^[v]; ω_c)`` of every local learner: ``[n, p]``; ``cost_weights``
-        ``[d]`` (the running process's) or ``[n, d]`` (each learner's own)."""
-        cost_all = cost_weights.expand(len(self.stats), -1)
+        ``[d]`` (the running process's) or ``[n, d]`` (each learner's own); ``stats`` and
+        ``m`` ``[n]``: other demonstrations' statistics and counts than the learners'."""
+        stats = self.stats if stats is None else stats
+        m = self.m if m is None else m
+        cost_all = cost_weights.expand(len(stats), -1)
         solutions = self.solve_all(eta, cost_all)
         grads = torch.stack([dual_gradient(sol, st, w) for sol, st, w
-                             in zip(solutions, self.stats, cost_all, strict=True)])
+                             in zip(solutions, stats, cost_all, strict=True)])
         for cb in self._active:
             cb.on_inner_gradients(self, learners=self._log_rows,
                                   step=self.state.outer_iteration * self.K + k,
                                   gradients=grads, eta=eta)
-        scaled = self.m[:, None] * grads
+        scaled = m[:, None] * grads
         scaled[:, -1] *= self.steps.multiplier_scale
         return scaled
 

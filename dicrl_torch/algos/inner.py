@@ -63,28 +63,46 @@ class InnerProcesses:
             alpha_sum += a
         return acc / alpha_sum, eta
 
-    def shard_fits(self) -> torch.Tensor:
+    def shard_fits(self, folds=None) -> torch.Tensor:
         """Each local learner's inner process on its own shard alone, from its trained η̄
         and ω_c: Algorithm 2 with no neighbours (``W = I``), ``K - 1`` steps of
         ``α(k) m^[v] ∇G^[v]`` and their α-weighted average, ``[n, p]``. Where the shards
         disagree, these rewards differ as the learners' own data pull them; nothing is
-        exchanged and the trainer's state is unchanged."""
-        return self._alpha_average(self._paper_iterates(
-            self.state.cost_weights, self.state.eta_bar, mix=False))[0]
+        exchanged and the trainer's state is unchanged.
 
-    def _gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor, k: int
-                   ) -> torch.Tensor:
-        grads = self._scaled_gradients(eta, cost_weights, k)
+        ``folds``: for a trainer of one learner holding the pooled shards (C-ICRL), those
+        shards: the fit each shard's learner would make from this learner's η̄ and ω_c,
+        ``[len(folds), p]``. The pooled trainer steps at ``ᾱ / N_L`` (the runner's
+        ``TrainerSpec``), so a fold ``f`` of ``m_f`` trajectories steps ``N_L`` times that
+        on ``m_f ∇G_f``: its learner's own step. A tabular model only (the fits solve for
+        ``len(folds)`` learners the trainer does not hold)."""
+        if folds is None:
+            return self._alpha_average(self._paper_iterates(
+                self.state.cost_weights, self.state.eta_bar, mix=False))[0]
+        if self.n_learners != 1 or getattr(self.learner_model, "stateful", False):
+            raise ValueError("Fits on folds are for one learner holding every shard (C-ICRL) "
+                             "of a stateless (tabular) model; a network's learners fit their "
+                             "own shards: call shard_fits() without folds.")
+        stats = [self.learner_model.statistics(f) for f in folds]
+        m = torch.tensor([float(st.m) for st in stats], dtype=torch.float64) * len(folds)
+        eta0 = self.state.eta_bar.expand(len(folds), -1).clone()
+        return self._alpha_average(self._paper_iterates(
+            self.state.cost_weights[0], eta0, mix=False, stats=stats, m=m))[0]
+
+    def _gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor, k: int,
+                   **shards) -> torch.Tensor:
+        grads = self._scaled_gradients(eta, cost_weights, k, **shards)
         self._check_finite("The dual gradient m ∇G", grads, k, self._process)
         return grads
 
-    def _paper_iterates(self, cost_weights, eta0, mix: bool = True):
+    def _paper_iterates(self, cost_weights, eta0, mix: bool = True, **shards):
         """Algorithm 2's iterates; ``mix=False``: each learner alone (``W = I``, nothing
-        sent); ``cost_weights`` ``[d]`` or ``[n, d]``."""
+        sent); ``cost_weights`` ``[d]`` or ``[n, d]``; ``shards``: ``stats`` and ``m`` in
+        place of the learners' (:meth:`shard_fits` on folds)."""
         eta = eta0.clone()
         for k in range(self.K - 1):
             yield eta
-            grads = self._gradients(eta, cost_weights, k)
+            grads = self._gradients(eta, cost_weights, k, **shards)
             if mix:
                 eta = self.comm.mix(eta, self._inner_matrix(k), "eta")
             eta = eta - self.steps.alpha(k) * grads

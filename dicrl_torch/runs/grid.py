@@ -204,7 +204,8 @@ class GridTask(GridRegionScoring, Task):
         certificate_shard_fits: with the network's certificate, each feature must also be
             required under every learner's own-shard fit (``DICRL.shard_fits``: its inner
             process alone from its η̄), exchanged with the η̄: learners whose η̄ agree
-            still ask what each shard's own data say.
+            still ask what each shard's own data say. C-ICRL, which pools the shards,
+            asks the fit each shard's learner would make from its own η̄.
         threshold: ``ω_c,j >= threshold`` marks a learned constraint (threshold rule).
         prune_min_gain: prune learned constraints the data does not need (nats per
             trajectory), or None to keep them all (threshold rule).
@@ -361,10 +362,16 @@ class GridTask(GridRegionScoring, Task):
         self._also_demonstrated = trainer.network_or(masks)
         self._network_rewards = trainer.comm.all_gather(  # ω_r of η̄, without λ: [N_L, l_r]
             trainer.state.eta_bar[:, :-1].contiguous(), "eta", phase="outer")
-        if self.certificate["shard_fits"]:  # and each learner's own-shard fit: [2 N_L, l_r]
+        if not self.certificate["shard_fits"]:
+            return
+        if trainer.n_learners == 1 and len(self.shards) > 1:
+            # C-ICRL pools the shards: the fit each shard's learner would make from its
+            # reward, so that both rows ask the rewards each part of the data supports.
+            fits = trainer.shard_fits(folds=self.shards)[:, :-1]
+        else:  # each learner's own-shard fit: [N_L, l_r]
             fits = trainer.comm.all_gather(trainer.shard_fits()[:, :-1].contiguous(), "eta",
                                            phase="outer")
-            self._network_rewards = torch.cat([self._network_rewards, fits])
+        self._network_rewards = torch.cat([self._network_rewards, fits])
 
     def _other_rewards(self, trainer: DICRL, i: int) -> list:
         """The other learners' learned rewards (:meth:`before_evaluation`), for local
