@@ -55,7 +55,9 @@ class GridLocalReLUBasis(FeatureBasis):
         density: position units per cell at the finest scale (``K = density · G²``):
             at 2 a unit's support holds one cell or two.
         scales: unit sizes, as multiples of the finest (``LocalReLUBasis``' ``scales``):
-            coarser units cover blocks of cells no expert enters.
+            coarser units cover blocks of cells no expert enters, and the certificate
+            may need one where the data say a route must be closed but not where, so
+            it forbids free cells with the obstacle (docs/gridworld.md).
         move_centres: move units over ``[-1, 1]²``.
         n_rings: separation units (0: none; one expert has none anyway).
         directions: the polygonal norm's ``M`` directions.
@@ -64,7 +66,7 @@ class GridLocalReLUBasis(FeatureBasis):
     """
 
     def __init__(self, model: TabularGridModel, *, density: float = 2.0,
-                 scales: Sequence[int] = (1, 2), move_centres: int = 9, n_rings: int = 12,
+                 scales: Sequence[int] = (1,), move_centres: int = 9, n_rings: int = 12,
                  directions: int = 6, overlap: float = 1.0, seed: int = 0) -> None:
         super().__init__(model)
         G, N = model.layout.size, model.n_experts
