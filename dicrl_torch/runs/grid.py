@@ -364,7 +364,7 @@ class GridTask(GridRegionScoring, Task):
             trainer.state.eta_bar[:, :-1].contiguous(), "eta", phase="outer")
         if not self.certificate["shard_fits"]:
             return
-        if trainer.n_learners == 1 and len(self.shards) > 1:
+        if trainer.n_learners == 1 and len(self.shards) > 1 and None not in self.shards:
             # C-ICRL pools the shards: the fit each shard's learner would make from its
             # reward, so that both rows ask the rewards each part of the data supports.
             fits = trainer.shard_fits(folds=self.shards)[:, :-1]
