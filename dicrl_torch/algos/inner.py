@@ -90,19 +90,19 @@ class InnerProcesses:
             self.state.cost_weights[0], eta0, mix=False, stats=stats, m=m))[0]
 
     def _gradients(self, eta: torch.Tensor, cost_weights: torch.Tensor, k: int,
-                   **shards) -> torch.Tensor:
-        grads = self._scaled_gradients(eta, cost_weights, k, **shards)
+                   **fold_data) -> torch.Tensor:
+        grads = self._scaled_gradients(eta, cost_weights, k, **fold_data)
         self._check_finite("The dual gradient m ∇G", grads, k, self._process)
         return grads
 
-    def _paper_iterates(self, cost_weights, eta0, mix: bool = True, **shards):
+    def _paper_iterates(self, cost_weights, eta0, mix: bool = True, **fold_data):
         """Algorithm 2's iterates; ``mix=False``: each learner alone (``W = I``, nothing
-        sent); ``cost_weights`` ``[d]`` or ``[n, d]``; ``shards``: ``stats`` and ``m`` in
+        sent); ``cost_weights`` ``[d]`` or ``[n, d]``; ``fold_data``: ``stats`` and ``m`` in
         place of the learners' (:meth:`shard_fits` on folds)."""
         eta = eta0.clone()
         for k in range(self.K - 1):
             yield eta
-            grads = self._gradients(eta, cost_weights, k, **shards)
+            grads = self._gradients(eta, cost_weights, k, **fold_data)
             if mix:
                 eta = self.comm.mix(eta, self._inner_matrix(k), "eta")
             eta = eta - self.steps.alpha(k) * grads
