@@ -111,9 +111,10 @@ def test_farthest_points_spread_and_cover():
         farthest_points(pool, 0, np.random.default_rng(0))
 
 
-def test_dilated_grows_the_supports_and_dot_keeps_only_the_weighted_units():
+@pytest.mark.parametrize("per_agent", [True, False])
+def test_dilated_grows_the_supports_and_dot_keeps_only_the_weighted_units(per_agent):
     basis = LocalReLUBasis(n_agents=2, bounds=[[0, 10], [0, 10]], n_centres=30, n_rings=8,
-                           per_agent=True, agent_prefix="drone", seed=0)
+                           per_agent=per_agent, agent_prefix="drone", seed=0)
     states = np.random.default_rng(3).uniform(0, 10, size=(300, 2, 4))
     wide = basis.dilated(0.5)
     assert wide.radius == pytest.approx(basis.radius + 0.5) and basis.dilatable

@@ -234,8 +234,8 @@ class LocalReLUBasis(ContinuousFeatureBasis):
             nu = np.abs(v @ dirs.T).sum(-1)
             radii = self.radii.numpy()[safe] + self.unit_margin
             phi = np.maximum(1.0 - nu / radii, 0.0) * (idx >= 0)
-            wa = w_units[np.arange(n) if self.per_agent else np.zeros(n, int)]  # [N, K]
-            weight = np.take_along_axis(wa[None].repeat(len(flat), 0), safe, -1)
+            rows = np.arange(n) if self.per_agent else np.zeros(n, int)  # each agent's w row
+            weight = w_units[rows[None, :, None], safe]  # [P, N, C], no [P, N, K] copy
             out += (phi * weight).sum((-1, -2)).reshape(out.shape)
         w_rings = w[first_ring:]
         if self.n_rings and w_rings.any():
