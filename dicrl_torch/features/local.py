@@ -228,20 +228,26 @@ class LocalReLUBasis(ContinuousFeatureBasis):
             flat = pos.reshape(-1, n, 2)
             cell = np.clip(((flat - lo) / size).astype(np.int64), 0, np.array(shape) - 1)
             idx = cand[cell[..., 0] * shape[1] + cell[..., 1]]  # [P, N, C], -1: none
-            safe = np.maximum(idx, 0)
-            # ν(x − c) = Σ_m |u_m·(x − c)| written out over the M directions on [P, N, C]
-            # arrays: a matmul over a last axis of 2 costs several times more.
-            centres = self.centres.numpy()
-            dx = flat[..., 0, None] - centres[safe, 0]
-            dy = flat[..., 1, None] - centres[safe, 1]
-            nu = np.zeros(idx.shape)
-            for ux, uy in self.directions.numpy():
-                nu += np.abs(ux * dx + uy * dy)
-            radii = self.radii.numpy()[safe] + self.unit_margin
-            phi = np.maximum(1.0 - nu / radii, 0.0) * (idx >= 0)
-            rows = np.arange(n) if self.per_agent else np.zeros(n, int)  # each agent's w row
-            weight = w_units[rows[None, :, None], safe]  # [P, N, C]
-            out += (phi * weight).sum((-1, -2)).reshape(out.shape)
+            near = idx[..., 0] >= 0  # [P, N]: some unit can reach (rows fill from the left)
+            if near.any():
+                units = idx[near]  # [Q, C]
+                units = units[:, :int((units >= 0).sum(1).max())]
+                safe = np.maximum(units, 0)
+                xy = flat[near]  # [Q, 2]
+                agent = np.nonzero(near)[1] if self.per_agent else np.zeros(len(xy), int)
+                # ν(x − c) = Σ_m |u_m·(x − c)| written out over the M directions: a
+                # matmul over a last axis of 2 costs several times more.
+                centres = self.centres.numpy()
+                dx = xy[:, 0, None] - centres[safe, 0]
+                dy = xy[:, 1, None] - centres[safe, 1]
+                nu = np.zeros(units.shape)
+                for ux, uy in self.directions.numpy():
+                    nu += np.abs(ux * dx + uy * dy)
+                radii = self.radii.numpy()[safe] + self.unit_margin
+                phi = np.maximum(1.0 - nu / radii, 0.0) * (units >= 0)
+                per_position = np.zeros(flat.shape[:2])
+                per_position[near] = (phi * w_units[agent[:, None], safe]).sum(-1)
+                out += per_position.sum(-1).reshape(out.shape)
         w_rings = w[first_ring:]
         if self.n_rings and w_rings.any():
             keep = np.flatnonzero(w_rings)
@@ -266,7 +272,7 @@ class LocalReLUBasis(ContinuousFeatureBasis):
             radii = self.radii.numpy()[live] + self.unit_margin
             # ν >= 0.97 |v| for these directions (a 2M-gon, M >= 3): a generous reach
             reach = radii / 0.95
-            size = float(reach.max())
+            size = float(reach.max()) / 4  # fine bins: few candidates, most bins none
             shape = tuple(int(np.ceil((b[d, 1] - b[d, 0]) / size)) + 1 for d in range(2))
             lo = b[:, 0]
             gx, gy = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
