@@ -41,6 +41,9 @@ from dicrl_torch.checks import InvalidSetting, setting_choice, setting_number
 from dicrl_torch.comm.communicator import Communicator, check_control
 from dicrl_torch.comm.compression import Compression
 
+PATIENT_GROUP_S = 24 * 3600.0
+"""The longest :meth:`DistributedCommunicator.barrier` can wait (its ``timeout_s``)."""
+
 _FIX = ("A learner process died or never joined; check its log, then rerun, resuming "
         "from the last checkpoint.")
 
@@ -168,6 +171,12 @@ class DistributedCommunicator(Communicator):
                              f"{self.n_learners} processes.")
         self.backend = backend
         self.device = torch.device("cpu")
+        # gloo's monitored barrier waits for its ranks within the barrier's own bound on
+        # rank 0 only: the others' send to rank 0 is bounded by their group's timeout. A
+        # second group with a long one, formed now while every learner is here (forming
+        # a group is itself a rendezvous), lets barrier() wait longer than an exchange.
+        self._patient_group = (dist.new_group(backend="gloo", timeout=datetime.timedelta(
+            seconds=PATIENT_GROUP_S)) if backend == "gloo" and self.n_learners > 1 else None)
         if backend == "nccl":
             # One GPU per learner process: torchrun's LOCAL_RANK, else round-robin.
             index = int(os.environ.get("LOCAL_RANK", self.rank % torch.cuda.device_count()))
@@ -250,15 +259,16 @@ class DistributedCommunicator(Communicator):
 
     def barrier(self, timeout_s: float | None = None) -> None:
         """Wait for every learner (or raise :class:`PeerFailureError` after ``timeout_s``,
-        default the communicator's; a longer one needs the gloo backend, whose
-        ``monitored_barrier`` takes its own bound)."""
+        default the communicator's; a longer one, up to :data:`PATIENT_GROUP_S`, needs the
+        gloo backend, whose ``monitored_barrier`` takes its own bound)."""
         try:
             if self.backend == "nccl":
                 dist.barrier(device_ids=[self.device.index])
-            elif timeout_s is None:
+            elif timeout_s is None or self._patient_group is None:
                 dist.barrier()
             else:
-                dist.monitored_barrier(timeout=datetime.timedelta(seconds=float(timeout_s)))
+                dist.monitored_barrier(group=self._patient_group,
+                                       timeout=datetime.timedelta(seconds=float(timeout_s)))
         except Exception as e:
             raise PeerFailureError(f"Learner {self.rank} of {self.n_learners}: barrier failed "
                                    f"({type(e).__name__}: {_first_line(e)}). {_FIX}") from e
