@@ -209,3 +209,31 @@ def test_cross_entropy_planner_refuses_bad_sizes():
         CrossEntropyPlanner(**kwargs, samples=20, elites=50)
     with pytest.raises(ValueError, match="samples=0 is invalid: it must be an int >= 1"):
         CrossEntropyPlanner(**kwargs, samples=0)
+
+
+@pytest.mark.parametrize("per_agent", [True, False])
+def test_the_drones_grid_values_forbid_a_learned_unit_for_every_drone_it_binds(per_agent):
+    """A learned local unit is a wall in the terminal values of each drone it binds: its
+    owner's, or every drone's when the drones share the unit (it counts the drones in
+    it). Without it the planner aimed through a learned region it must not enter and
+    hovered at its edge. A learned separation ring binds no drone alone."""
+    from dicrl_torch.envs.drones import DroneDynamics
+    from dicrl_torch.features.drone import DoorLocationRewardBasis
+    from dicrl_torch.features.local import LocalReLUBasis
+    from dicrl_torch.solvers.drone_planning import drone_grid_values
+
+    cost = LocalReLUBasis(n_agents=2, bounds=[[0, 10], [0, 10]], n_centres=40, n_rings=6,
+                          per_agent=per_agent, agent_prefix="drone", seed=0, state_dim=4)
+    reward = DoorLocationRewardBasis()
+    unit = int(np.argmin(np.linalg.norm(cost.centres.numpy() - 5.0, axis=1)))  # mid-room
+    learned = np.zeros(cost.dim, dtype=bool)
+    learned[unit] = True  # drone 0's unit, or the shared one
+    learned[-1] = True  # the widest separation ring: no wall for a drone alone
+    eta = np.array([1.0] * reward.dim + [-10.0])
+    values = drone_grid_values(reward, cost, eta, learned.astype(float), learned, n_agents=2,
+                               margin=0.1, grid_step=0.25, dynamics=DroneDynamics(),
+                               gamma=0.99)
+    centre = np.clip((cost.centres.numpy()[unit] / 0.25).astype(int), 0, 39)
+    walled = [bool(v[centre[1], centre[0]] == FORBIDDEN_VALUE) for v in values]
+    assert walled == ([True, False] if per_agent else [True, True])
+    assert all((v == FORBIDDEN_VALUE).sum() < 0.25 * 40 * 40 for v in values)  # not the ring

@@ -122,11 +122,15 @@ def drone_grid_values(reward_basis: ContinuousFeatureBasis,
     wide = cost_basis.dilated(reach) if reach else cost_basis
     values = []
     for d in range(n):
-        # Drone d at each centre, the others at the origin; only drone d's own
-        # features count (a shared one, the proximity, is left to the planner).
-        states = np.zeros((G * G, n, 4))
+        # Drone d at each centre, the others far outside the room, where no position
+        # feature and no pair feature (proximity, separation rings) of theirs fires: a
+        # cost feature shared by the drones (a unit counting the drones in it) then
+        # holds drone d's part alone, and the pair features are left to the planner.
+        # The reward keeps drone d's own features only.
+        states = np.full((G * G, n, 4), 0.0)
+        states[:, :, :2] = -10.0 * ROOM_SIZE
         states[:, d, 0], states[:, d, 1] = gx.ravel(), gy.ravel()
-        own_r, own_c = shares_r[:, d] == 1, shares_c[:, d] == 1
+        own_r, own_c = shares_r[:, d] == 1, shares_c[:, d] > 0
         phi_r = reward_basis.compute(torch.as_tensor(states)).numpy()
         phi_c = cost_basis.compute(torch.as_tensor(states)).numpy()
         reward = phi_r @ (eta[:-1] * own_r) + float(eta[-1]) * (
