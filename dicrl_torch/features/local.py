@@ -132,7 +132,10 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         spacing = math.sqrt(float(np.prod(b[:, 1] - b[:, 0])) / len(pool))
         centres, radii = [], []
         for c in per_scale:
-            gap = np.abs((pool[:, None, :] - c[None]) @ directions_.T).sum(-1).min(1)
+            # in blocks of the pool: [P, K, M] at once is gigabytes for fine units
+            gap = np.concatenate([
+                np.abs((part[:, None, :] - c[None]) @ directions_.T).sum(-1).min(1)
+                for part in np.array_split(pool, max(1, len(pool) * len(c) // 2**20))])
             centres.append(c)
             radii.append(np.full(len(c), self.overlap * (float(gap.max()) + spacing)))
         centres, radii = np.concatenate(centres), np.concatenate(radii)
