@@ -176,6 +176,15 @@ class LocalReLUBasis(ContinuousFeatureBasis):
         a = v @ self.directions.to(v.dtype).T  # [..., M]
         return (torch.relu(a) + torch.relu(-a)).sum(-1)
 
+    def _norm_numpy(self, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+        """:meth:`_norm` of vectors given by their components ``dx``, ``dy`` (same shape),
+        for the planner's numpy path: written out over the ``M`` directions, since a
+        matmul over a last axis of 2 costs several times more."""
+        total = np.zeros(np.shape(dx))
+        for ux, uy in self.directions.numpy():
+            total += np.abs(ux * dx + uy * dy)
+        return total
+
     def compute(self, states: torch.Tensor) -> torch.Tensor:
         if max(self.position_columns) >= states.shape[-1]:
             raise ValueError(f"{self.label}: position_columns {self.position_columns} do not "
@@ -233,32 +242,25 @@ class LocalReLUBasis(ContinuousFeatureBasis):
             idx = cand[cell[..., 0] * shape[1] + cell[..., 1]]  # [P, N, C], -1: none
             near = idx[..., 0] >= 0  # [P, N]: some unit can reach (rows fill from the left)
             if near.any():
+                position, agent = np.nonzero(near)  # [Q] each
                 units = idx[near]  # [Q, C]
                 units = units[:, :int((units >= 0).sum(1).max())]
                 safe = np.maximum(units, 0)
-                xy = flat[near]  # [Q, 2]
-                agent = np.nonzero(near)[1] if self.per_agent else np.zeros(len(xy), int)
-                # ν(x − c) = Σ_m |u_m·(x − c)| written out over the M directions: a
-                # matmul over a last axis of 2 costs several times more.
                 centres = self.centres.numpy()
-                dx = xy[:, 0, None] - centres[safe, 0]
-                dy = xy[:, 1, None] - centres[safe, 1]
-                nu = np.zeros(units.shape)
-                for ux, uy in self.directions.numpy():
-                    nu += np.abs(ux * dx + uy * dy)
+                nu = self._norm_numpy(flat[near, 0, None] - centres[safe, 0],
+                                      flat[near, 1, None] - centres[safe, 1])
                 radii = self.radii.numpy()[safe] + self.unit_margin
                 phi = np.maximum(1.0 - nu / radii, 0.0) * (units >= 0)
-                per_position = np.zeros(flat.shape[:2])
-                per_position[near] = (phi * w_units[agent[:, None], safe]).sum(-1)
-                out += per_position.sum(-1).reshape(out.shape)
+                row = agent[:, None] if self.per_agent else 0  # the agent's weights
+                value = (phi * w_units[row, safe]).sum(-1)  # [Q]
+                out += np.bincount(position, weights=value,
+                                   minlength=len(flat)).reshape(out.shape)
         w_rings = w[first_ring:]
         if self.n_rings and w_rings.any():
             keep = np.flatnonzero(w_rings)
             i, j = np.triu_indices(n, 1)
             diff = pos[..., i, :] - pos[..., j, :]  # [..., pairs, 2]
-            sep = np.zeros(diff.shape[:-1])
-            for ux, uy in self.directions.numpy():  # ν written out, as for the units
-                sep += np.abs(ux * diff[..., 0] + uy * diff[..., 1])
+            sep = self._norm_numpy(diff[..., 0], diff[..., 1])
             gap = np.abs(sep[..., None] - self.rings.numpy()[keep])
             width = self.ring_widths.numpy()[keep] + self.ring_margin
             out += (np.maximum(1.0 - gap / width, 0.0) @ w_rings[keep]).sum(-1)

@@ -127,7 +127,7 @@ def drone_grid_values(reward_basis: ContinuousFeatureBasis,
         # cost feature shared by the drones (a unit counting the drones in it) then
         # holds drone d's part alone, and the pair features are left to the planner.
         # The reward keeps drone d's own features only.
-        states = np.full((G * G, n, 4), 0.0)
+        states = np.zeros((G * G, n, 4))
         states[:, :, :2] = -10.0 * ROOM_SIZE
         states[:, d, 0], states[:, d, 1] = gx.ravel(), gy.ravel()
         own_r, own_c = shares_r[:, d] == 1, shares_c[:, d] > 0
