@@ -190,7 +190,7 @@ def test_replanning_once_per_knot_flies_each_plan_open_loop_between():
         if t % 4 == 0:
             np.testing.assert_array_equal(dense.act(state, active)[0], acts[t])
             dense._held[:] = 0  # the held steps pass without it: shift as act would have
-            dense._mean = np.concatenate([dense._mean[:, 1:], dense._mean[:, -1:]], axis=1)
+            dense._plan = np.concatenate([dense._plan[:, 1:], dense._plan[:, -1:]], axis=1)
         state, active = dense.step_fn(state, active, acts[t][None])
     # Rollouts: one step_fn call per planned step per round per knot; the flight's own
     # steps are _fly's calls (one per step).
@@ -198,6 +198,56 @@ def test_replanning_once_per_knot_flies_each_plan_open_loop_between():
     assert plan_calls == -(-steps // 4) * 4 * 20
     with pytest.raises(ValueError, match="replan=3 is invalid.*dividing knot=4"):
         _point_planner(replan=3)
+
+
+def _posts_planner(seed: int, n: int = 2) -> CrossEntropyPlanner:
+    """``n`` points side by side, point ``i`` at ``(2 i, 0)`` in the corridor
+    ``|x - 2 i| <= 0.6`` with a post ``|x - 2 i| < 0.3, y in (0.4, 0.8)`` above it; one
+    joint plan, rewarded by the points' heights."""
+    offsets = 2.0 * np.arange(n)
+
+    def step(states, active, actions):
+        return states + 0.2 * np.clip(actions, -1, 1) * active[..., None], active
+
+    def blocked(states):
+        x, y = states[..., 0] - offsets, states[..., 1]
+        return ((np.abs(x) > 0.6) | ((np.abs(x) < 0.3) & (y > 0.4) & (y < 0.8))).any(-1)
+
+    return CrossEntropyPlanner(
+        step_fn=step, reward_fn=lambda states: states[..., 1].sum(-1), forbidden_fn=blocked,
+        terminal_fn=lambda states: 10 * states[:, :, 1].sum(-1), action_shape=(n, 2),
+        gamma=GAMMA, horizon=20, knot=4, samples=128, iterations=4, elites=12, seed=seed)
+
+
+def test_the_planner_flies_the_best_plan_it_scored():
+    """The action is the first knot of the highest-return plan among every plan scored
+    in the call's rounds (read from the planner's own scoring)."""
+    planner = _posts_planner(seed=0)
+    scored = []
+    score = planner.returns
+    planner.returns = lambda *a: (scored.append((a[2], score(*a))), scored[-1][1])[1]
+    state, active = np.zeros((1, 2, 2)), np.ones((1, 2), bool)
+    state[0, 1, 0] = 2.0
+    for _ in range(6):
+        scored.clear()
+        action = planner.act(state, active)
+        knots = np.concatenate([k[0] for k, _ in scored])  # [rounds * S, K, 2, 2]
+        returns = np.concatenate([r[0] for _, r in scored])
+        np.testing.assert_array_equal(action[0], knots[np.argmax(returns), 0])
+        state, active = planner.step_fn(state, active, action)
+
+
+def test_two_points_pass_their_posts_where_the_elites_mean_runs_into_them():
+    """Each point must pass its post on one side; the elites mix both sides per point,
+    so their mean heads into the posts (flown, it entered or stalled below them at
+    every one of these seeds)."""
+    for seed in range(10):
+        planner = _posts_planner(seed)
+        state, active = np.array([[[0.0, 0.0], [2.0, 0.0]]]), np.ones((1, 2), bool)
+        for _ in range(40):
+            state, active = planner.step_fn(state, active, planner.act(state, active))
+            assert not planner.forbidden_fn(state[None])[0, 0], f"seed {seed} entered"
+        assert state[0, :, 1].min() > 0.8, f"seed {seed}: stuck below a post"
 
 
 def test_cross_entropy_planner_refuses_bad_sizes():

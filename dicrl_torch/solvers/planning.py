@@ -135,10 +135,11 @@ class CrossEntropyPlanner:
 
     A plan is ``horizon // knot`` actions, each held for ``knot`` steps. Every call of
     :meth:`act` samples, for each problem asked, ``samples`` plans round its current mean
-    (its previous plan shifted by the steps taken since, the mean itself always among
-    them), rolls out the plans of all those problems in one ``step_fn`` call per step,
-    scores them, refits each problem's mean and spread to its ``elites`` best, and after
-    ``iterations`` rounds returns the first action of each mean. Each problem draws from
+    (at first its previous plan shifted by the steps taken since, the mean itself always
+    among them), rolls out the plans of all those problems in one ``step_fn`` call per
+    step, scores them, refits each problem's mean and spread to its ``elites`` best, and
+    after ``iterations`` rounds returns the first action of the best plan it scored (which
+    the next call starts from, so a plan found is kept until a better one is). Each problem draws from
     its own random stream, so its plans do not depend on which other problems are planned
     beside it (batching is for speed: one model call on ``P × samples`` states instead of
     ``P`` calls on ``samples``).
@@ -193,7 +194,7 @@ class CrossEntropyPlanner:
 
     def reset(self) -> None:
         """Forget every problem's previous plan (before a new set of episodes)."""
-        self._mean = np.zeros((self.problems, self.horizon // self.knot, *self.action_shape))
+        self._plan = np.zeros((self.problems, self.horizon // self.knot, *self.action_shape))
         self._held = np.zeros(self.problems, dtype=np.int64)  # steps the first action held
 
     def returns(self, states: Any, active: Any, knots: np.ndarray, held: int = 0
@@ -252,8 +253,9 @@ class CrossEntropyPlanner:
                   held: int) -> np.ndarray:
         """:meth:`act` for problems ``which`` whose first knot has been held ``held``
         steps."""
-        mean = self._mean[which]  # [P', K, *A]
-        std = np.full_like(mean, self.init_std)
+        plan = self._plan[which]  # [P', K, *A]: the previous step's plan, shifted
+        mean, std = plan, np.full_like(plan, self.init_std)
+        best_score = np.full(len(which), -np.inf)
         spare = (None,) * (mean.ndim - 1)
         rounds = self.iterations if held % self.replan == 0 else 0
         for _ in range(rounds):
@@ -262,14 +264,21 @@ class CrossEntropyPlanner:
             knots = np.clip(mean[:, None] + std[:, None] * noise, -1.0, 1.0)
             knots[:, 0] = mean
             scores = self.returns(states, active, knots, held)
-            best = np.argsort(-scores, axis=1, kind="stable")[:, :self.elites]
-            elite = np.take_along_axis(knots, best[(...,) + spare], axis=1)
+            order = np.argsort(-scores, axis=1, kind="stable")
+            elite = np.take_along_axis(knots, order[:, :self.elites][(...,) + spare], axis=1)
+            # The plan flown is the best one scored, never the elites' mean: the mean of
+            # plans passing a learned obstacle on either side runs into it (and is never
+            # scored), and a drone flying such means hovers at the obstacle.
+            top = np.take_along_axis(scores, order[:, :1], axis=1)[:, 0]
+            better = top > best_score
+            plan = np.where(better[(...,) + spare], elite[:, 0], plan)
+            best_score = np.where(better, top, best_score)
             mean, std = elite.mean(1), elite.std(1) + 0.05
-        action = mean[:, 0].copy()
+        action = plan[:, 0].copy()
         # Hold the first knot for `knot` steps, then shift the plan by one knot.
         held += 1
         if held == self.knot:
-            mean = np.concatenate([mean[:, 1:], mean[:, -1:]], axis=1)
+            plan = np.concatenate([plan[:, 1:], plan[:, -1:]], axis=1)
             held = 0
-        self._mean[which], self._held[which] = mean, held
+        self._plan[which], self._held[which] = plan, held
         return action
