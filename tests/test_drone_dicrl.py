@@ -336,6 +336,35 @@ def test_planning_on_the_true_game_flies_both_drones_round_the_block():
     assert block < -1e8 and values[0].max() > 0
 
 
+def test_every_planned_row_flies_the_same_planner_stream_in_either_backend(monkeypatch):
+    """A learner's planned row does not depend on where its learner sits: all learners in
+    one process (comm=simulated, learner 2 at index 1) and one per process
+    (comm=distributed, index 0) plan with one seed, the one C-ICRL's row plans with."""
+    from types import SimpleNamespace
+
+    from common import drone_task
+
+    task = drone_task(_compose("eval_episodes=2", "solver.eval_policy=plan"))
+    seeds = []
+    monkeypatch.setattr(task, "evaluate_planned",
+                        lambda solver, eta, cw, mask, seed, progress=None:
+                        (seeds.append(seed), ({}, []))[1])
+    monkeypatch.setattr(task, "_bound", lambda trainer, i: None)
+    dim = task.cost_basis.dim
+
+    def holding(learners):
+        n = len(learners)
+        return SimpleNamespace(
+            state=SimpleNamespace(eta_bar=np.ones((n, 5)), cost_weights=np.zeros((n, dim))),
+            learner_model=SimpleNamespace(inner_solver=lambda i: None),
+            local=list(learners), n_learners=2)
+
+    task.evaluate_learner(holding([0, 1]), 1, progress=False)  # simulated: learner 2
+    task.evaluate_learner(holding([1]), 0, progress=False)  # its own process
+    task.evaluate_learner(holding([0]), 0, progress=False)  # learner 1 (and C-ICRL's)
+    assert len(set(seeds)) == 1
+
+
 def test_measure_planner_reports_a_planned_true_game_row(capsys):
     """experiments/studies/measure_planner.py flies the planner on the true game with the
     true set; the same settings twice give the same flights (checksum)."""
@@ -376,3 +405,31 @@ def test_prune_study_counts_the_plans_that_enter_a_removed_feature(tmp_path, cap
     assert set(by) == {"drone0/cell(0,9)", "drone0/cell(4,5)"}
     assert by["drone0/cell(0,9)"]["episodes_entering"] == 0 and not by["drone0/cell(0,9)"]["true"]
     assert by["drone0/cell(4,5)"]["episodes_entering"] >= 1 and by["drone0/cell(4,5)"]["true"]
+
+
+def test_replan_study_flies_a_runs_learned_games_again(tmp_path, capsys):
+    """experiments/studies/replan_study.py: a run's rows (here the true game's) flown by the
+    planner, beside the committed SR and CVR; a results.json whose last ω_c is not the
+    row's learned set is refused, not flown."""
+    from common import drone_task
+    from studies import replan_study  # experiments/ is on pytest's pythonpath
+
+    task = drone_task(_compose())
+    truth = task.cost_basis.true_constraints().numpy()
+    cw = np.where(truth, 0.8, 0.0)
+    row = {"reward_weights": [1.0, 1.0, 1.0, 1.0], "multiplier": -10.0, "SR": 0.5, "CVR": 0.25,
+           "n_learned": int(truth.sum())}
+    results = {"methods": {m: {"learners": [row]} for m in ("D-ICRL", "C-ICRL")},
+               "history": {m: [{"cost_weights": [cw.tolist()]}] for m in ("D-ICRL", "C-ICRL")}}
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(results))
+    replan_study.main([str(path), "experiment=table2_quick", "eval_episodes=2"])
+    lines = [json.loads(x) for x in capsys.readouterr().out.strip().splitlines()]
+    assert [(x["method"], x["learner"]) for x in lines] == [("D-ICRL", 1), ("C-ICRL", 1)]
+    for x in lines:
+        assert x["committed"] == {"SR": 0.5, "CVR": 0.25}
+        assert x["now"] == {"SR": 1.0, "CVR": 0.0}  # the true game's constraints, flown
+    row["n_learned"] += 1
+    path.write_text(json.dumps(results))
+    with pytest.raises(SystemExit, match="does not hold its final"):
+        replan_study.main([str(path), "experiment=table2_quick", "eval_episodes=2"])

@@ -580,9 +580,12 @@ class SACTask(RegionScoring, Task):
         mask = learned_constraints(cw, self.threshold)
         solver = trainer.learner_model.inner_solver(i)
         if self.eval_policy == "plan":
+            # One planner stream for every row, as every row flies the same starts: rows
+            # differ by their learned games only, and a learner's row is the same in
+            # whichever process holds it (its index there is not its learner number).
             row, paths = self.evaluate_planned(
                 solver, np.asarray(eta, dtype=np.float64), np.asarray(cw, dtype=np.float64),
-                mask, derived_seed(self.seed, 4, i),
+                mask, derived_seed(self.seed, 4, 0),
                 progress=self._planning_label(trainer, i) if progress else None)
             row.update(self.rates(mask), multiplier=float(eta[-1]),
                        reward_weights=eta[:-1].tolist(), policy_timesteps=None,
