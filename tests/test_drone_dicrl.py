@@ -433,3 +433,24 @@ def test_replan_study_flies_a_runs_learned_games_again(tmp_path, capsys):
     path.write_text(json.dumps(results))
     with pytest.raises(SystemExit, match="does not hold its final"):
         replan_study.main([str(path), "experiment=table2_quick", "eval_episodes=2"])
+
+
+def test_evidence_share_counts_the_region_straight_flights_show():
+    """experiments/studies/evidence_share.py on the drones' deep basis: straight flights run
+    from the start support to the doors' centres; they cross the block (it sits where the
+    straight routes cross), so they show part of the region, never more than the
+    constrainable features cover."""
+    from studies import evidence_share  # experiments/ is on pytest's pythonpath
+
+    flights = evidence_share.straight_flights(points=5)
+    starts = start_support()[:, :, :2]
+    flying = flights[:, :, :, :2].max(-1) > -1  # [F, points, 2]: which drone is in the room
+    assert flying.any(-1).all() and not flying.all(-1).any()  # exactly one drone at a time
+    for drone in range(2):
+        own = flights[flying[:, 0, drone]][:, :, drone, :2]
+        assert {tuple(p) for p in own[:, 0]} == {tuple(p) for p in starts[:, drone]}
+        assert np.allclose(own[:, -1, 1], 10.0) and len({tuple(p) for p in own[:, -1]}) == 1
+    records = evidence_share.main(["experiment=table2_quick", "features/cost=local_relu_drones"])
+    assert [r["learner"] for r in records] == [1, 2, "C-ICRL"]
+    for r in records:
+        assert 0.5 < r["shown_by_ignoring_flights"] <= r["expressible"] <= 1.0
