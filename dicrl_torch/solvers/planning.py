@@ -139,10 +139,10 @@ class CrossEntropyPlanner:
     among them), rolls out the plans of all those problems in one ``step_fn`` call per
     step, scores them, refits each problem's mean and spread to its ``elites`` best, and
     after ``iterations`` rounds returns the first action of the best plan it scored (which
-    the next call starts from, so a plan found is kept until a better one is). Each problem draws from
-    its own random stream, so its plans do not depend on which other problems are planned
-    beside it (batching is for speed: one model call on ``P × samples`` states instead of
-    ``P`` calls on ``samples``).
+    the next call starts from, so a plan found is kept until a better one is). Each problem
+    draws from its own random stream, so its plans do not depend on which other problems
+    are planned beside it (batching is for speed: one model call on ``P × samples`` states
+    instead of ``P`` calls on ``samples``).
 
     Args:
         step_fn: ``(states [B, ...], active [B, N], actions [B, *action_shape]) ->

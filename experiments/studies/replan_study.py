@@ -25,10 +25,10 @@ from hydra import compose, initialize_config_dir
 EXPERIMENTS = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(EXPERIMENTS))  # the entry points' common.py (studies/__init__.py)
 from common import drone_task  # noqa: E402
-from studies.prune_study import learned_games  # noqa: E402
 
-from dicrl_torch.runs.continuous import derived_seed  # noqa: E402
 from dicrl_torch.metrics import learned_constraints  # noqa: E402
+from dicrl_torch.runs.continuous import derived_seed  # noqa: E402
+from studies.prune_study import learned_games  # noqa: E402
 
 CONFIGS = EXPERIMENTS.parent / "configs"
 
