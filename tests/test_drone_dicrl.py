@@ -362,7 +362,7 @@ def test_every_planned_row_flies_the_same_planner_stream_in_either_backend(monke
     task.evaluate_learner(holding([0, 1]), 1, progress=False)  # simulated: learner 2
     task.evaluate_learner(holding([1]), 0, progress=False)  # its own process
     task.evaluate_learner(holding([0]), 0, progress=False)  # learner 1 (and C-ICRL's)
-    assert len(set(seeds)) == 1
+    assert len(set(seeds)) == 1 and seeds[0] == task.planning_seed()
 
 
 def test_measure_planner_reports_a_planned_true_game_row(capsys):

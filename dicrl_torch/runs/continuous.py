@@ -510,6 +510,12 @@ class SACTask(RegionScoring, Task):
                              true_game=True, trajectories=True, rng=self.evaluation_rng())
         return ev.success_rate, ev.violation_rate, list(ev.paths)
 
+    def planning_seed(self) -> int:
+        """The planner's seed for every planned row (:meth:`planning_actor`): one stream
+        for every row, as every row flies the same starts, so rows differ by their learned
+        games only, and a learner's row is the same in whichever process holds it."""
+        return derived_seed(self.seed, 4, 0)
+
     def evaluation_rng(self) -> np.random.Generator:
         """A fresh generator of the evaluation's episode seeds: every row, and both
         action modes, fly from the same starts."""
@@ -580,12 +586,9 @@ class SACTask(RegionScoring, Task):
         mask = learned_constraints(cw, self.threshold)
         solver = trainer.learner_model.inner_solver(i)
         if self.eval_policy == "plan":
-            # One planner stream for every row, as every row flies the same starts: rows
-            # differ by their learned games only, and a learner's row is the same in
-            # whichever process holds it (its index there is not its learner number).
             row, paths = self.evaluate_planned(
                 solver, np.asarray(eta, dtype=np.float64), np.asarray(cw, dtype=np.float64),
-                mask, derived_seed(self.seed, 4, 0),
+                mask, self.planning_seed(),
                 progress=self._planning_label(trainer, i) if progress else None)
             row.update(self.rates(mask), multiplier=float(eta[-1]),
                        reward_weights=eta[:-1].tolist(), policy_timesteps=None,

@@ -269,7 +269,7 @@ class CrossEntropyPlanner:
             # The plan flown is the best one scored, never the elites' mean: the mean of
             # plans passing a learned obstacle on either side runs into it (and is never
             # scored), and a drone flying such means hovers at the obstacle.
-            top = np.take_along_axis(scores, order[:, :1], axis=1)[:, 0]
+            top = scores.max(1)  # elite[:, 0]'s
             better = top > best_score
             plan = np.where(better[(...,) + spare], elite[:, 0], plan)
             best_score = np.where(better, top, best_score)

@@ -27,7 +27,6 @@ sys.path.insert(0, str(EXPERIMENTS))  # the entry points' common.py (studies/__i
 from common import drone_task  # noqa: E402
 
 from dicrl_torch.metrics import learned_constraints  # noqa: E402
-from dicrl_torch.runs.continuous import derived_seed  # noqa: E402
 from studies.prune_study import learned_games  # noqa: E402
 
 CONFIGS = EXPERIMENTS.parent / "configs"
@@ -52,8 +51,7 @@ def main(argv: list[str] | None = None) -> None:
                 f"features where the row learned {row['n_learned']}; this run's results.json "
                 f"does not hold its final ω_c.")
         t0 = time.perf_counter()
-        # The runner plans every row from one stream (the task's evaluate_learner).
-        flown, _ = task.evaluate_planned(task.base, eta, cw, mask, derived_seed(task.seed, 4, 0))
+        flown, _ = task.evaluate_planned(task.base, eta, cw, mask, task.planning_seed())
         print(json.dumps({
             "method": method, "learner": i + 1,
             "committed": {"SR": row["SR"], "CVR": row["CVR"]},
